@@ -1,0 +1,41 @@
+"""Confounded environments and their registry; installed as ``jaxdeconf.envs`` from the top-level ``envs/`` folder."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any
+
+from jaxdeconf.envs.base import ActionSpace, Environment, Observation, StepResult
+
+__all__ = ["REGISTRY", "ActionSpace", "Environment", "Observation", "StepResult", "make"]
+
+
+def _bandit() -> Environment:
+    from jaxdeconf.envs.bandit import Bandit
+
+    return Bandit()
+
+
+#: Environment name -> constructor. Heavy environments (Brax) import their modules lazily here.
+REGISTRY: dict[str, Callable[[], Environment]] = {"bandit": _bandit}
+
+
+def make(name: str, **overrides: Any) -> tuple[Environment, Any]:
+    """Build environment ``name`` and its params with ``overrides``; raise ValueError on unknown names or values."""
+    if name not in REGISTRY:
+        raise ValueError(f"unknown env {name!r}; allowed: {', '.join(sorted(REGISTRY))}")
+    env = REGISTRY[name]()
+    params = env.default_params()
+    fields = {f.name: f for f in dataclasses.fields(params)}
+    for key, value in overrides.items():
+        if key not in fields:
+            raise ValueError(f"unknown parameter {key!r} for env {name!r}; allowed: {', '.join(fields)}")
+        default = getattr(params, key)
+        try:
+            value = type(default)(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"env {name} parameter {key}={value!r} is not a {type(default).__name__}") from None
+        params = params.replace(**{key: value})
+    env.validate(params)
+    return env, params

@@ -1,0 +1,105 @@
+"""The environment contract shared by every confounded environment.
+
+Environments follow gymnax's pure-function style: ``reset(key, params)`` and ``step(key, state, action, params)``
+never mutate anything, state and params are ``flax.struct`` pytrees, and the latent θ is sampled at reset and kept in
+the state. Every observation comes in three views (expert, imitator, oracle) so that "the imitator never sees θ" is a
+property of one field. Episodes have a fixed length; early termination only clears the ``valid`` mask.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, ClassVar
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+
+@struct.dataclass
+class Observation:
+    """The three views of one observation: expert (sees θ), imitator (never θ), oracle (imitator's view plus θ)."""
+
+    expert: jax.Array
+    imitator: jax.Array
+    oracle: jax.Array
+
+
+@struct.dataclass
+class StepResult:
+    """What ``step`` returns besides the new state: observation, reward, termination and per-step extras."""
+
+    obs: Observation
+    reward: jax.Array
+    done: jax.Array
+    extras: dict[str, jax.Array]
+
+
+@dataclasses.dataclass(frozen=True)
+class ActionSpace:
+    """A discrete space of ``n`` actions (``kind='discrete'``) or a box of ``n`` dimensions in [-1, 1]."""
+
+    kind: str
+    n: int
+
+    @property
+    def discrete(self) -> bool:
+        """Whether actions are integer indices."""
+        return self.kind == "discrete"
+
+    @property
+    def feature_size(self) -> int:
+        """Size of the action's vector encoding (one-hot for discrete spaces)."""
+        return self.n
+
+
+class Environment:
+    """Base class of confounded environments; subclasses implement the pure functions below."""
+
+    name: ClassVar[str] = ""
+    #: How the decoder should score the imitator's observation: "gaussian" (unit variance) or "bernoulli".
+    obs_likelihood: ClassVar[str] = "gaussian"
+    #: Names of the per-step extras ``step`` reports (summed per episode in evaluation).
+    extras_names: ClassVar[tuple[str, ...]] = ()
+
+    def default_params(self) -> Any:
+        """The environment's default parameters."""
+        raise NotImplementedError
+
+    def validate(self, params: Any) -> None:
+        """Raise ``ValueError`` naming any parameter outside its allowed range."""
+        del params  # Unused.
+
+    def horizon(self, params: Any) -> int:
+        """Fixed episode length (a static Python int)."""
+        raise NotImplementedError
+
+    def action_space(self, params: Any) -> ActionSpace:
+        """The action space."""
+        raise NotImplementedError
+
+    def obs_sizes(self, params: Any) -> Observation:
+        """Sizes of the three observation views, as an Observation of ints."""
+        raise NotImplementedError
+
+    def reset(self, key: jax.Array, params: Any) -> tuple[Any, Observation]:
+        """Sample θ and an initial state; return the state and its observation."""
+        raise NotImplementedError
+
+    def step(self, key: jax.Array, state: Any, action: jax.Array, params: Any) -> tuple[Any, StepResult]:
+        """Advance one step."""
+        raise NotImplementedError
+
+    def expert_action(self, key: jax.Array, obs: Observation, params: Any) -> jax.Array:
+        """Sample the expert's action from its view of the observation."""
+        raise NotImplementedError
+
+    def expert_probs(self, obs: Observation, params: Any) -> jax.Array | None:
+        """The expert's action probabilities (discrete spaces), for DAgger labels and diagnostics."""
+        del obs, params  # Unused.
+        return None
+
+    def best_action(self, state: Any, params: Any) -> jax.Array:
+        """The action a θ-aware agent prefers in ``state``, or -1 where no single one exists."""
+        del state, params  # Unused.
+        return jnp.asarray(-1, jnp.int32)

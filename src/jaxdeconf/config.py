@@ -1,0 +1,220 @@
+"""One frozen config tree per run, presets per environment, and dotted overrides from the command line."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import Any
+
+ALGOS = ("bc", "oracle", "dil")
+
+
+class ConfigError(ValueError):
+    """Bad user input; the CLI prints it as one line and exits with code 2."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Network sizes (static: they fix shapes)."""
+
+    width: int = 128  # Hidden width of every MLP block (Linear -> LayerNorm -> ELU, two blocks).
+    action_embed: int = 32  # Size of the previous-action embedding fed to the GRUs.
+    gru: int = 500  # GRU hidden size of the inference model q_phi.
+    bc_gru: int = 500  # GRU hidden size of the recurrent naive-BC / oracle policy.
+    latent: int = 64  # Latent size of theta-hat.
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Loop counts (static) and optimisation constants."""
+
+    iterations: int = 300  # Outer iterations (Algorithm 1's while-loop).
+    warmup: int = 20  # First iterations that collect data (and train the encoder) but do not update the policy.
+    chunk: int = 10  # Iterations per compiled chunk; progress, metrics and checkpoints happen once per chunk.
+    episodes_per_iter: int = 16  # Episodes collected per data stream per iteration.
+    batch_size: int = 16  # Whole episodes per gradient step.
+    policy_steps: int = 100  # Policy (BC) gradient steps per iteration.
+    encoder_steps: int = 100  # Inference-model (ELBO) gradient steps per iteration (dil only).
+    buffer_episodes: int = 2000  # Replay-buffer capacity per data stream, in whole episodes.
+    policy_lr: float = 3e-4  # AdamW learning rate of the policy.
+    encoder_lr: float = 3e-4  # AdamW learning rate of encoder and decoder.
+    weight_decay: float = 0.01  # AdamW weight decay.
+    encoder_clip: float = 100.0  # Global-norm gradient clip of the inference model.
+    policy_clip: float = 100.0  # Global-norm gradient clip of the policy.
+    beta: float = 1.0  # KL weight of the sequential ELBO (eq. 11).
+    prediction_steps: int = 1  # K: how many future observations the decoder predicts from z_t.
+    eval_episodes: int = 64  # Online evaluation episodes per chunk.
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """A whole experiment: environment, algorithms, seeds, sizes and training constants."""
+
+    env: str = "bandit"
+    env_params: dict[str, Any] = dataclasses.field(default_factory=dict)  # Overrides of the env's defaults.
+    algos: tuple[str, ...] = ("bc", "dil")
+    seeds: int = 10  # Seeds 0..seeds-1, trained together in one vmapped program.
+    model: ModelConfig = ModelConfig()
+    train: TrainConfig = TrainConfig()
+
+    @property
+    def num_chunks(self) -> int:
+        """Number of compiled chunks (the last may hold fewer iterations)."""
+        return -(-self.train.iterations // self.train.chunk)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready nested dict."""
+        out = dataclasses.asdict(self)
+        out["algos"] = list(self.algos)
+        return out
+
+
+# Presets per environment: dotted-field overrides applied on top of the dataclass defaults.
+PRESETS: dict[str, dict[str, dict[str, Any]]] = {
+    "bandit": {
+        # A 2-core CPU reaches the paper's bandit result in minutes: small nets, fresh expert data every iteration.
+        "cpu": {
+            "model.width": 64,
+            "model.action_embed": 16,
+            "model.gru": 64,
+            "model.bc_gru": 128,
+            "model.latent": 5,
+            "train.iterations": 300,
+            "train.warmup": 20,
+            "train.chunk": 25,
+            "train.episodes_per_iter": 32,
+            "train.batch_size": 32,
+            "train.buffer_episodes": 32,
+            "train.policy_steps": 4,
+            "train.encoder_steps": 4,
+            "train.policy_lr": 3e-3,
+            "train.encoder_lr": 3e-3,
+            "train.beta": 0.01,
+            "train.eval_episodes": 128,
+        },
+        # The reference code's bandit configuration (batch 32, 100 policy / 1 encoder step per iteration).
+        "paper": {
+            "model.width": 128,
+            "model.action_embed": 32,
+            "model.gru": 500,
+            "model.bc_gru": 1000,
+            "model.latent": 5,
+            "train.iterations": 300,
+            "train.warmup": 20,
+            "train.chunk": 10,
+            "train.episodes_per_iter": 32,
+            "train.batch_size": 32,
+            "train.buffer_episodes": 32,
+            "train.policy_steps": 100,
+            "train.encoder_steps": 1,
+            "train.beta": 0.01,
+            "train.eval_episodes": 64,
+        },
+    },
+}
+
+
+def _coerce(value: Any, default: Any, name: str) -> Any:
+    """Convert a command-line string to the type of the field's default."""
+    if isinstance(default, bool):
+        if str(value).lower() in ("1", "true", "yes"):
+            return True
+        if str(value).lower() in ("0", "false", "no"):
+            return False
+        raise ConfigError(f"{name}={value!r} is not a boolean (allowed: true, false)")
+    try:
+        return type(default)(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{name}={value!r} is not a valid {type(default).__name__}") from None
+
+
+def apply_overrides(config: Config, overrides: dict[str, Any]) -> Config:
+    """Return ``config`` with dotted overrides (``train.iterations``, ``model.gru``, ``env.p``) applied."""
+    sections: dict[str, dict[str, Any]] = {"model": {}, "train": {}}
+    env_params = dict(config.env_params)
+    top: dict[str, Any] = {}
+    for name, value in overrides.items():
+        section, _, field = name.partition(".")
+        if section == "env" and field:
+            env_params[field] = value
+        elif section in sections and field:
+            sub = getattr(config, section)
+            names = {f.name for f in dataclasses.fields(sub)}
+            if field not in names:
+                raise ConfigError(f"unknown field {name!r}; allowed {section}.* fields: {', '.join(sorted(names))}")
+            sections[section][field] = _coerce(value, getattr(sub, field), name)
+        elif name == "seeds":
+            top["seeds"] = _coerce(value, config.seeds, name)
+        else:
+            raise ConfigError(f"unknown field {name!r}; allowed: model.*, train.*, env.*, seeds")
+    return dataclasses.replace(
+        config,
+        model=dataclasses.replace(config.model, **sections["model"]),
+        train=dataclasses.replace(config.train, **sections["train"]),
+        env_params=env_params,
+        **top,
+    )
+
+
+def validate(config: Config) -> None:
+    """Raise ConfigError naming the first value outside its allowed range."""
+    for algo in config.algos:
+        if algo not in ALGOS:
+            raise ConfigError(f"unknown algorithm {algo!r}; allowed: {', '.join(ALGOS)}")
+    if not config.algos:
+        raise ConfigError("no algorithm given; allowed: " + ", ".join(ALGOS))
+    if config.seeds < 1:
+        raise ConfigError(f"seeds={config.seeds} is not allowed: need a positive integer")
+    positive = {f"model.{f.name}": getattr(config.model, f.name) for f in dataclasses.fields(config.model)}
+    for name in ("iterations", "chunk", "episodes_per_iter", "batch_size", "policy_steps", "encoder_steps",
+                 "buffer_episodes", "prediction_steps", "eval_episodes"):
+        positive[f"train.{name}"] = getattr(config.train, name)
+    for name, value in positive.items():
+        if value < 1:
+            raise ConfigError(f"{name}={value} is not allowed: need a positive integer")
+    if config.train.warmup < 0 or config.train.warmup >= config.train.iterations:
+        raise ConfigError(f"train.warmup={config.train.warmup} is not allowed: need 0 <= warmup < train.iterations")
+    for name in ("policy_lr", "encoder_lr", "encoder_clip", "policy_clip"):
+        if getattr(config.train, name) <= 0:
+            raise ConfigError(f"train.{name}={getattr(config.train, name)} is not allowed: need a positive number")
+    for name in ("beta", "weight_decay"):
+        if getattr(config.train, name) < 0:
+            raise ConfigError(f"train.{name}={getattr(config.train, name)} is not allowed: need a number >= 0")
+    if config.train.batch_size > config.train.buffer_episodes:
+        raise ConfigError(
+            f"train.batch_size={config.train.batch_size} exceeds train.buffer_episodes="
+            f"{config.train.buffer_episodes}: a batch must fit in the buffer"
+        )
+
+
+def build(env: str, preset: str, algos: tuple[str, ...], seeds: int, overrides: dict[str, Any]) -> Config:
+    """Resolve a preset plus overrides into a validated Config."""
+    if env not in PRESETS:
+        from jaxdeconf.envs import REGISTRY
+
+        allowed = sorted(REGISTRY)
+        raise ConfigError(f"unknown env {env!r}; allowed: {', '.join(allowed)}")
+    if preset not in PRESETS[env]:
+        raise ConfigError(f"unknown preset {preset!r} for env {env!r}; allowed: {', '.join(PRESETS[env])}")
+    config = Config(env=env, algos=algos, seeds=seeds)
+    config = apply_overrides(config, PRESETS[env][preset])
+    config = apply_overrides(config, overrides)
+    validate(config)
+    return config
+
+
+def from_dict(data: dict[str, Any]) -> Config:
+    """Inverse of ``Config.to_dict``."""
+    return Config(
+        env=data["env"],
+        env_params=dict(data["env_params"]),
+        algos=tuple(data["algos"]),
+        seeds=int(data["seeds"]),
+        model=ModelConfig(**data["model"]),
+        train=TrainConfig(**data["train"]),
+    )
+
+
+def dumps(config: Config) -> str:
+    """Canonical JSON text of a config (used to compare a results folder's config with a new one)."""
+    return json.dumps(config.to_dict(), indent=2, sort_keys=True)

@@ -1,0 +1,158 @@
+"""Losses as module-level pure functions returning ``(loss, metrics)``; loops over time are ``lax.scan``s.
+
+Arrays are time-major. A trajectory of T steps holds observations ``obs`` [T+1, B, d], actions [T, B(, A)] and a
+``valid`` mask [T, B]; step t is valid while the episode has not terminated before t.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from jaxdeconf.models import Decoder, Encoder, RecurrentPolicy
+
+LOG_2PI = jnp.log(2.0 * jnp.pi)
+
+
+def kl_diag_gaussian(
+    mean_q: jax.Array, logvar_q: jax.Array, mean_p: jax.Array, logvar_p: jax.Array
+) -> jax.Array:
+    """KL(N(mean_q, exp(logvar_q)) || N(mean_p, exp(logvar_p))) summed over the last axis."""
+    return 0.5 * jnp.sum(
+        logvar_p - logvar_q + (jnp.exp(logvar_q) + (mean_q - mean_p) ** 2) * jnp.exp(-logvar_p) - 1.0, axis=-1
+    )
+
+
+def gaussian_nll(x: jax.Array, mean: jax.Array) -> jax.Array:
+    """-log N(x; mean, I), summed over the last axis."""
+    return jnp.sum(0.5 * (x - mean) ** 2 + 0.5 * LOG_2PI, axis=-1)
+
+
+def bernoulli_nll(x: jax.Array, logits: jax.Array) -> jax.Array:
+    """-log Bernoulli(x; sigmoid(logits)), summed over the last axis."""
+    return jnp.sum(jnp.logaddexp(0.0, logits) - x * logits, axis=-1)
+
+
+def obs_nll(likelihood: str, x: jax.Array, out: jax.Array) -> jax.Array:
+    """Observation negative log-likelihood under the decoder's likelihood family."""
+    if likelihood == "bernoulli":
+        return bernoulli_nll(x, out)
+    return gaussian_nll(x, out)
+
+
+def masked_mean(x: jax.Array, mask: jax.Array) -> jax.Array:
+    """Mean of ``x`` over entries where ``mask`` holds (0 if none)."""
+    mask = mask.astype(x.dtype)
+    return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
+
+
+def prev_actions(action_feats: jax.Array) -> jax.Array:
+    """Shift action features [T, B, A] one step later, zeros at t = 0: the input a_{t-1} of step t."""
+    return jnp.concatenate([jnp.zeros_like(action_feats[:1]), action_feats[:-1]], axis=0)
+
+
+def encoder_scan(
+    encoder: Encoder, params: Any, obs: jax.Array, prev_action: jax.Array
+) -> tuple[jax.Array, jax.Array]:
+    """Posterior means and log-variances [T, B, L] of q_phi over a sequence (obs and prev_action [T, B, ...])."""
+    inputs = encoder.apply(params, obs, prev_action, method=Encoder.embed)
+    carry = jnp.zeros(obs.shape[1:-1] + (encoder.hidden,), jnp.float32)
+
+    def body(carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+        return encoder.apply(params, carry, x, method=Encoder.recur)
+
+    _, (mean, logvar) = jax.lax.scan(body, carry, inputs)
+    return mean, logvar
+
+
+def recurrent_policy_scan(policy: RecurrentPolicy, params: Any, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
+    """Head outputs [T, B, out] of a recurrent policy over a sequence."""
+    inputs = policy.apply(params, obs, prev_action, method=RecurrentPolicy.embed)
+    carry = jnp.zeros(obs.shape[1:-1] + (policy.hidden,), jnp.float32)
+
+    def body(carry: jax.Array, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        return policy.apply(params, carry, x, method=RecurrentPolicy.recur)
+
+    _, out = jax.lax.scan(body, carry, inputs)
+    return out
+
+
+def sequential_kl(mean: jax.Array, logvar: jax.Array) -> jax.Array:
+    """KL(q_t || q_{t-1}) per step [T, B], with q_{-1} = N(0, I) (eq. 11's prior)."""
+    prior_mean = jnp.concatenate([jnp.zeros_like(mean[:1]), mean[:-1]], axis=0)
+    prior_logvar = jnp.concatenate([jnp.zeros_like(logvar[:1]), logvar[:-1]], axis=0)
+    return kl_diag_gaussian(mean, logvar, prior_mean, prior_logvar)
+
+
+def shift_ahead(x: jax.Array, k: int) -> jax.Array:
+    """x[t + k] at position t along axis 0, zero-padded past the end."""
+    if k == 0:
+        return x
+    return jnp.concatenate([x[k:], jnp.zeros((k,) + x.shape[1:], x.dtype)], axis=0)
+
+
+def prediction_nll(
+    decoder: Decoder,
+    params: Any,
+    z: jax.Array,
+    obs: jax.Array,
+    action_feats: jax.Array,
+    valid: jax.Array,
+    steps: int,
+    likelihood: str,
+) -> tuple[jax.Array, jax.Array]:
+    """K-step teacher-forced prediction NLL summed over k, and its mask count, per step [T, B].
+
+    From z_t the decoder predicts s_{t+k+1} given the true s_{t+k} and a_{t+k}, for k < K and t + k < T with step
+    t + k valid. obs is [T+1, B, d]; z, action_feats and valid are [T, ...].
+    """
+    T = valid.shape[0]
+    total = jnp.zeros(valid.shape, jnp.float32)
+    count = jnp.zeros(valid.shape, jnp.float32)
+    for k in range(min(steps, T)):  # K is a small static constant; each k is one batched decoder call.
+        cur = shift_ahead(obs[:T], k)
+        nxt = shift_ahead(obs[1:], k)
+        act = shift_ahead(action_feats, k)
+        mask = shift_ahead(valid.astype(jnp.float32), k)
+        out = decoder.apply(params, z, cur, act)
+        total = total + obs_nll(likelihood, nxt, out) * mask
+        count = count + mask
+    return total, count
+
+
+def elbo_loss(
+    params: dict[str, Any],
+    obs: jax.Array,
+    action_feats: jax.Array,
+    valid: jax.Array,
+    key: jax.Array,
+    *,
+    encoder: Encoder,
+    decoder: Decoder,
+    beta: float,
+    steps: int,
+    likelihood: str,
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """Negative sequential ELBO (eq. 11) per valid step, on exploration data.
+
+    params: {"encoder": ..., "decoder": ...}; obs [T+1, B, d] (imitator view); action_feats [T, B, A]; valid [T, B].
+    At step t the posterior q_t = q_phi(. | s_{0:t}, a_{0:t-1}) is sampled by reparameterisation; its prior is q_{t-1}
+    (N(0, I) at t = 0); the decoder scores the next K observations from the sample.
+    """
+    T = valid.shape[0]
+    mean, logvar = encoder_scan(encoder, params["encoder"], obs[:T], prev_actions(action_feats))
+    z = mean + jnp.exp(0.5 * logvar) * jax.random.normal(key, mean.shape)
+    nll, _ = prediction_nll(decoder, params["decoder"], z, obs, action_feats, valid, steps, likelihood)
+    kl = sequential_kl(mean, logvar)
+    loss = masked_mean(nll + beta * kl, valid)
+    metrics = {"elbo_nll": masked_mean(nll, valid), "elbo_kl": masked_mean(kl, valid)}
+    return loss, metrics
+
+
+def nll_from_outputs(space: Any, out: jax.Array, action: jax.Array, valid: jax.Array) -> jax.Array:
+    """Mean negative log-likelihood of actions under head outputs over valid steps (eq. 10's BC loss)."""
+    from jaxdeconf.models import log_prob
+
+    return masked_mean(-log_prob(space, out, action), valid)

@@ -1,0 +1,153 @@
+"""Flax networks: inference model q_phi, decoder p_psi, latent-conditional and recurrent policies, action heads.
+
+Every network is split into per-timestep methods (``embed`` works on any leading shape, ``recur`` does one GRU step)
+so that the loops over time live in ``losses.py`` as ``lax.scan``s that tests can compare against plain loops.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from jaxdeconf.envs.base import ActionSpace
+
+LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+
+
+class MLP(nn.Module):
+    """Blocks of Linear -> LayerNorm -> ELU, as in the reference code."""
+
+    features: Sequence[int]
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        """Apply the blocks."""
+        for size in self.features:
+            x = nn.elu(nn.LayerNorm()(nn.Dense(size)(x)))
+        return x
+
+
+def action_features(space: ActionSpace, action: jax.Array) -> jax.Array:
+    """Vector encoding of an action: one-hot for discrete spaces, the action itself for boxes."""
+    if space.discrete:
+        return jax.nn.one_hot(action, space.n, dtype=jnp.float32)
+    return action.astype(jnp.float32)
+
+
+def head_size(space: ActionSpace) -> int:
+    """Size of a policy head's output: logits, or mean and log-std."""
+    return space.n if space.discrete else 2 * space.n
+
+
+def log_prob(space: ActionSpace, out: jax.Array, action: jax.Array) -> jax.Array:
+    """Log-likelihood of ``action`` under a head output ``out`` (leading axes kept)."""
+    if space.discrete:
+        logp = jax.nn.log_softmax(out, axis=-1)
+        return jnp.take_along_axis(logp, action[..., None].astype(jnp.int32), axis=-1)[..., 0]
+    mean, log_std = jnp.split(out, 2, axis=-1)
+    log_std = jnp.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
+    z = (action - mean) * jnp.exp(-log_std)
+    return jnp.sum(-0.5 * z**2 - log_std - 0.5 * jnp.log(2 * jnp.pi), axis=-1)
+
+
+def sample(space: ActionSpace, key: jax.Array, out: jax.Array) -> jax.Array:
+    """Draw an action from a head output."""
+    if space.discrete:
+        return jax.random.categorical(key, out, axis=-1).astype(jnp.int32)
+    mean, log_std = jnp.split(out, 2, axis=-1)
+    log_std = jnp.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
+    return mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape)
+
+
+class Encoder(nn.Module):
+    """q_phi(theta-hat | tau_{:t}): MLP(obs) ⊕ embedding(previous action) -> GRU -> (mean, log-variance)."""
+
+    width: int
+    action_embed: int
+    hidden: int
+    latent: int
+
+    def setup(self) -> None:
+        """Sub-networks shared by ``embed`` and ``recur``."""
+        self.obs_net = MLP((self.width, self.width))
+        self.action_net = nn.Dense(self.action_embed)
+        self.cell = nn.GRUCell(self.hidden)
+        self.out = nn.Dense(2 * self.latent)
+
+    def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
+        """GRU inputs for any leading shape: [..., width + action_embed]."""
+        return jnp.concatenate([self.obs_net(obs), self.action_net(prev_action)], axis=-1)
+
+    def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+        """One GRU step: carry [B, hidden], x [B, E] -> new carry, (mean, logvar) each [B, latent]."""
+        carry, h = self.cell(carry, x)
+        mean, logvar = jnp.split(self.out(h), 2, axis=-1)
+        return carry, (mean, logvar)
+
+    def __call__(self, obs: jax.Array, prev_action: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+        """One step from a zero carry (used for initialisation)."""
+        carry = jnp.zeros(obs.shape[:-1] + (self.hidden,), jnp.float32)
+        return self.recur(carry, self.embed(obs, prev_action))
+
+
+class Decoder(nn.Module):
+    """p_psi(s_{t+k+1} | z_t, s_{t+k}, a_{t+k}): the next observation's mean or logits."""
+
+    width: int
+    action_embed: int
+    obs_size: int
+
+    @nn.compact
+    def __call__(self, z: jax.Array, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """Predict the next observation's parameters from the latent, the current observation and action."""
+        h = jnp.concatenate(
+            [z, MLP((self.width, self.width))(obs), nn.Dense(self.action_embed)(action)], axis=-1
+        )
+        return nn.Dense(self.obs_size)(MLP((self.width, self.width))(h))
+
+
+class LatentPolicy(nn.Module):
+    """pi_eta(a | s, theta-hat): a Markov policy conditioned on the inferred latent."""
+
+    width: int
+    out_size: int
+
+    @nn.compact
+    def __call__(self, obs: jax.Array, z: jax.Array) -> jax.Array:
+        """Head output (logits, or mean and log-std) for any leading shape."""
+        h = jnp.concatenate([MLP((self.width, self.width))(obs), z], axis=-1)
+        return nn.Dense(self.out_size)(MLP((self.width, self.width))(h))
+
+
+class RecurrentPolicy(nn.Module):
+    """Naive-BC (or oracle) policy: MLP(obs) ⊕ embedding(previous action) -> GRU -> MLP -> head."""
+
+    width: int
+    action_embed: int
+    hidden: int
+    out_size: int
+
+    def setup(self) -> None:
+        """Sub-networks shared by ``embed`` and ``recur``."""
+        self.obs_net = MLP((self.width, self.width))
+        self.action_net = nn.Dense(self.action_embed)
+        self.cell = nn.GRUCell(self.hidden)
+        self.head = MLP((self.width,))
+        self.out = nn.Dense(self.out_size)
+
+    def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
+        """GRU inputs for any leading shape."""
+        return jnp.concatenate([self.obs_net(obs), self.action_net(prev_action)], axis=-1)
+
+    def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """One GRU step -> new carry, head output [B, out_size]."""
+        carry, h = self.cell(carry, x)
+        return carry, self.out(self.head(h))
+
+    def __call__(self, obs: jax.Array, prev_action: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """One step from a zero carry (used for initialisation)."""
+        carry = jnp.zeros(obs.shape[:-1] + (self.hidden,), jnp.float32)
+        return self.recur(carry, self.embed(obs, prev_action))
