@@ -53,7 +53,8 @@ class Config:
     env: str = "bandit"
     env_params: dict[str, Any] = dataclasses.field(default_factory=dict)  # Overrides of the env's defaults.
     algos: tuple[str, ...] = ("bc", "dil")
-    seeds: int = 10  # Seeds 0..seeds-1, trained together in one vmapped program.
+    seeds: int = 10  # Number of seeds, trained together in one vmapped program.
+    seed_start: int = 0  # Seeds are seed_start .. seed_start + seeds - 1.
     model: ModelConfig = ModelConfig()
     train: TrainConfig = TrainConfig()
 
@@ -143,10 +144,10 @@ def apply_overrides(config: Config, overrides: dict[str, Any]) -> Config:
             if field not in names:
                 raise ConfigError(f"unknown field {name!r}; allowed {section}.* fields: {', '.join(sorted(names))}")
             sections[section][field] = _coerce(value, getattr(sub, field), name)
-        elif name == "seeds":
-            top["seeds"] = _coerce(value, config.seeds, name)
+        elif name in ("seeds", "seed_start"):
+            top[name] = _coerce(value, getattr(config, name), name)
         else:
-            raise ConfigError(f"unknown field {name!r}; allowed: model.*, train.*, env.*, seeds")
+            raise ConfigError(f"unknown field {name!r}; allowed: model.*, train.*, env.*, seeds, seed_start")
     return dataclasses.replace(
         config,
         model=dataclasses.replace(config.model, **sections["model"]),
@@ -165,6 +166,8 @@ def validate(config: Config) -> None:
         raise ConfigError("no algorithm given; allowed: " + ", ".join(ALGOS))
     if config.seeds < 1:
         raise ConfigError(f"seeds={config.seeds} is not allowed: need a positive integer")
+    if config.seed_start < 0:
+        raise ConfigError(f"seed_start={config.seed_start} is not allowed: need an integer >= 0")
     positive = {f"model.{f.name}": getattr(config.model, f.name) for f in dataclasses.fields(config.model)}
     for name in ("iterations", "chunk", "episodes_per_iter", "batch_size", "policy_steps", "encoder_steps",
                  "buffer_episodes", "prediction_steps", "eval_episodes"):
@@ -210,6 +213,7 @@ def from_dict(data: dict[str, Any]) -> Config:
         env_params=dict(data["env_params"]),
         algos=tuple(data["algos"]),
         seeds=int(data["seeds"]),
+        seed_start=int(data.get("seed_start", 0)),
         model=ModelConfig(**data["model"]),
         train=TrainConfig(**data["train"]),
     )

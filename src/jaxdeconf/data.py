@@ -128,11 +128,16 @@ def buffer_add(buffer: Buffer, traj: Trajectory) -> Buffer:
     )
 
 
-def buffer_sample(buffer: Buffer, key: jax.Array, batch: int) -> Trajectory:
-    """Sample ``batch`` distinct stored episodes uniformly (without replacement)."""
+def buffer_indices(buffer: Buffer, key: jax.Array, batch: int) -> jax.Array:
+    """Indices of ``batch`` distinct stored episodes, drawn uniformly (without replacement)."""
     scores = jax.random.uniform(key, (buffer.capacity,))
     scores = jnp.where(jnp.arange(buffer.capacity) < buffer.size, scores, 2.0)
-    idx = jnp.argsort(scores)[:batch]
+    return jnp.argsort(scores)[:batch]
+
+
+def buffer_sample(buffer: Buffer, key: jax.Array, batch: int) -> Trajectory:
+    """Sample ``batch`` distinct stored episodes uniformly (without replacement)."""
+    idx = buffer_indices(buffer, key, batch)
     return jax.tree.map(lambda d: d[:, idx], buffer.data)
 
 

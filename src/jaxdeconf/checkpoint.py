@@ -1,0 +1,57 @@
+"""Orbax checkpoints of the seed-vmapped TrainState (typed PRNG keys are stored as raw key data)."""
+
+from __future__ import annotations
+
+import pathlib
+from typing import Any
+
+import jax
+import orbax.checkpoint as ocp
+
+from jaxdeconf.config import ConfigError
+
+
+def _to_raw(state: Any) -> Any:
+    """Replace the typed key by its uint32 data so orbax can store it."""
+    return state.replace(key=jax.random.key_data(state.key))
+
+
+def _from_raw(state: Any) -> Any:
+    """Inverse of ``_to_raw``."""
+    return state.replace(key=jax.random.wrap_key_data(state.key))
+
+
+class Checkpoints:
+    """Keeps the last two checkpoints of one algorithm's run under ``directory``, step = iterations done."""
+
+    def __init__(self, directory: pathlib.Path) -> None:
+        """Open (or create lazily) the checkpoint folder."""
+        self.directory = pathlib.Path(directory).absolute()
+        options = ocp.CheckpointManagerOptions(max_to_keep=2, create=True)
+        self.manager = ocp.CheckpointManager(self.directory, options=options)
+
+    def latest_step(self) -> int | None:
+        """Iterations done in the newest checkpoint, or None."""
+        return self.manager.latest_step()
+
+    def save(self, step: int, state: Any) -> None:
+        """Write a checkpoint (atomically: orbax renames a finished temporary folder)."""
+        self.manager.save(step, args=ocp.args.StandardSave(_to_raw(state)))
+        self.manager.wait_until_finished()
+
+    def restore(self, step: int, like: Any) -> Any:
+        """Read the checkpoint of ``step`` into the structure of ``like``; a one-line ConfigError if unreadable."""
+        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _to_raw(like))
+        try:
+            raw = self.manager.restore(step, args=ocp.args.StandardRestore(abstract))
+        except Exception as err:  # Orbax raises many types for damaged files; all mean the same to the user.
+            reason = str(err).strip().splitlines()[0][:160] if str(err).strip() else type(err).__name__
+            raise ConfigError(
+                f"checkpoint {self.directory / str(step)} is unreadable ({reason}); it was left untouched: "
+                "move it away to restart from the previous one, or pass --overwrite to retrain from scratch"
+            ) from None
+        return _from_raw(raw)
+
+    def close(self) -> None:
+        """Release the manager's threads."""
+        self.manager.close()

@@ -1,0 +1,143 @@
+"""Results files a user opens: a summary table (Markdown and CSV) and PNG figures, read back from a run's folder."""
+
+from __future__ import annotations
+
+import csv
+import json
+import pathlib
+from typing import Any
+
+import numpy as np
+
+from jaxdeconf.config import Config
+
+# Which exact reference each algorithm should match on the bandit (see the paper, section 5.1).
+TARGET = {"bc": "conditional", "dil": "interventional", "oracle": "expert"}
+COLORS = {"bc": "tab:red", "oracle": "tab:green", "dil": "tab:blue"}
+
+
+def load_metrics(folder: pathlib.Path, algo: str) -> list[dict[str, Any]]:
+    """Rows of ``<algo>/metrics.jsonl``."""
+    path = folder / algo / "metrics.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines() if line] if path.exists() else []
+
+
+def eval_table(rows: list[dict[str, Any]], key: str) -> tuple[np.ndarray, np.ndarray]:
+    """(iterations [E], values [seeds, E]) of an eval metric."""
+    rows = [r for r in rows if key in r]
+    iters = sorted({r["iteration"] for r in rows})
+    seeds = sorted({r["seed"] for r in rows})
+    table = np.full((len(seeds), len(iters)), np.nan)
+    for r in rows:
+        table[seeds.index(r["seed"]), iters.index(r["iteration"])] = r[key]
+    return np.asarray(iters), table
+
+
+def mean_se(x: np.ndarray, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and standard error over ``axis``."""
+    n = x.shape[axis]
+    return np.nanmean(x, axis=axis), (np.nanstd(x, axis=axis, ddof=1) / np.sqrt(n) if n > 1 else np.zeros_like(
+        np.nanmean(x, axis=axis)))
+
+
+def summarize(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> list[dict[str, Any]]:
+    """One summary row per algorithm, from its final evaluation."""
+    table = []
+    for algo in config.algos:
+        rows = load_metrics(folder, algo)
+        if not rows:
+            continue
+        _, returns = eval_table(rows, "eval_return")
+        final = returns[:, -1]
+        m, se = mean_se(final)
+        row: dict[str, Any] = {"algo": algo, "seeds": int(final.size), "iterations": int(max(r["iteration"] for r in rows)),
+                               "return_mean": float(m), "return_se": float(se)}
+        extra_keys = sorted({k for r in rows for k in r if k.startswith("eval_") and k not in ("eval_return",)})
+        for key in extra_keys:
+            row[key] = float(np.nanmean(eval_table(rows, key)[1][:, -1]))
+        curves_path = folder / algo / "curves.npz"
+        if curves_path.exists() and refs is not None:
+            curves = np.load(curves_path)
+            online, expert = curves["p_best_online"].mean(0), curves["p_best_expert"].mean(0)
+            row["p_best_last_step"] = float(online[-1])
+            for kind in ("conditional", "interventional"):
+                row[f"max_dev_online_vs_{kind}"] = float(np.max(np.abs(online - refs[f"{kind}_online"])))
+                row[f"max_dev_expert_vs_{kind}"] = float(np.max(np.abs(expert - refs[f"{kind}_expert"])))
+        table.append(row)
+    return table
+
+
+def write_summary(folder: pathlib.Path, table: list[dict[str, Any]], refs: dict[str, Any] | None) -> str:
+    """Write summary.csv and summary.md; return the Markdown text."""
+    keys = sorted({k for row in table for k in row}, key=lambda k: (k not in ("algo", "seeds", "iterations"), k))
+    with (folder / "summary.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=keys)
+        writer.writeheader()
+        writer.writerows(table)
+    lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
+    for row in table:
+        cells = [f"{row[k]:.3f}" if isinstance(row.get(k), float) else str(row.get(k, "")) for k in keys]
+        lines.append("| " + " | ".join(cells) + " |")
+    text = "\n".join(lines) + "\n"
+    if refs is not None:
+        text += (
+            f"\nExact references (best-arm count per episode): expert {refs['expert_count']:.2f}, "
+            f"interventional {refs['interventional_count']:.2f} ± {refs['interventional_count_se']:.2f}, "
+            f"conditional {refs['conditional_count']:.2f} ± {refs['conditional_count_se']:.2f}.\n"
+        )
+    (folder / "summary.md").write_text(text)
+    return text
+
+
+def plot(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> list[pathlib.Path]:
+    """learning_curves.png and, on the bandit, p_best.png; returns the written paths."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    written = []
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for algo in config.algos:
+        rows = load_metrics(folder, algo)
+        if not rows:
+            continue
+        iters, returns = eval_table(rows, "eval_return")
+        m, se = mean_se(returns)
+        ax.plot(iters, m, label=algo, color=COLORS.get(algo))
+        ax.fill_between(iters, m - se, m + se, alpha=0.25, color=COLORS.get(algo))
+    if refs is not None:
+        for kind, style in (("expert", ":"), ("interventional", "--"), ("conditional", "-.")):
+            ax.axhline(refs[f"{kind}_count"], color="k", ls=style, lw=1, label=f"exact {kind}")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("best-arm count per episode" if refs is not None else "return")
+    ax.set_title(f"{config.env}: mean ± s.e. over {config.seeds} seeds")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(folder / "learning_curves.png", dpi=120)
+    plt.close(fig)
+    written.append(folder / "learning_curves.png")
+
+    if refs is None:
+        return written
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
+    for ax, where, title in zip(axes, ("expert", "online"), ("on expert data", "online"), strict=True):
+        for algo in config.algos:
+            path = folder / algo / "curves.npz"
+            if not path.exists():
+                continue
+            m, se = mean_se(np.load(path)[f"p_best_{where}"])
+            t = np.arange(m.size)
+            ax.plot(t, m, color=COLORS.get(algo), label=algo)
+            ax.fill_between(t, m - se, m + se, alpha=0.25, color=COLORS.get(algo))
+        ax.plot(refs[f"interventional_{where}"], "k--", lw=1, label="exact interventional")
+        ax.plot(refs[f"conditional_{where}"], "k-.", lw=1, label="exact conditional")
+        ax.set_title(f"P(best arm) {title}")
+        ax.set_xlabel("step t")
+    axes[0].set_ylabel("P(best arm)")
+    axes[1].legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(folder / "p_best.png", dpi=120)
+    plt.close(fig)
+    written.append(folder / "p_best.png")
+    return written

@@ -1,0 +1,131 @@
+"""Command line: ``python -m jaxdeconf.run --env bandit --algo bc,dil --seeds 10 [--preset cpu] [--set k=v ...]``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import shutil
+import sys
+from typing import Any
+
+from jaxdeconf import config as cfg
+from jaxdeconf.config import ConfigError
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    """Command-line flags."""
+    p = argparse.ArgumentParser(prog="python -m jaxdeconf.run", description=__doc__)
+    p.add_argument("--env", default="bandit", help="environment name (default: bandit)")
+    p.add_argument("--algo", default="bc,dil", help=f"comma-separated algorithms from {', '.join(cfg.ALGOS)}")
+    p.add_argument("--seeds", type=int, default=10, help="number of seeds, trained together in one program")
+    p.add_argument("--preset", default="cpu", help="preset of the environment (bandit: cpu, paper)")
+    p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                   help="override a config field, e.g. train.iterations=100, model.gru=256, env.p=0.7")
+    p.add_argument("--out", default=None, help="results folder (default: results/<env>-<preset>)")
+    p.add_argument("--overwrite", action="store_true", help="delete an existing results folder and start over")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p.parse_args(argv)
+
+
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """``FIELD=VALUE`` strings to a dict."""
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name:
+            raise ConfigError(f"--set {item!r} is not of the form FIELD=VALUE")
+        out[name.strip()] = value.strip()
+    return out
+
+
+def prepare_folder(folder: pathlib.Path, config: cfg.Config, overwrite: bool) -> None:
+    """Create the results folder, or check an existing one holds the same config (never clobber results)."""
+    config_path = folder / "config.json"
+    if folder.exists() and overwrite:
+        shutil.rmtree(folder)
+    if config_path.exists():
+        old = config_path.read_text()
+        if old.strip() != cfg.dumps(config).strip():
+            old_cfg = json.loads(old)
+            diff = _first_difference(old_cfg, config.to_dict())
+            raise ConfigError(
+                f"results folder {folder} holds a different config ({diff}); use another --out, or --overwrite"
+            )
+    elif folder.exists() and any(folder.iterdir()):
+        raise ConfigError(f"results folder {folder} is not empty and has no config.json; use another --out")
+    folder.mkdir(parents=True, exist_ok=True)
+    config_path.write_text(cfg.dumps(config) + "\n")
+
+
+def _first_difference(old: Any, new: Any, path: str = "") -> str:
+    """Describe the first differing field of two nested dicts."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        for key in sorted(set(old) | set(new)):
+            if old.get(key) != new.get(key):
+                return _first_difference(old.get(key), new.get(key), f"{path}.{key}" if path else key)
+    return f"{path}: {old!r} there, {new!r} now"
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit code (2 for bad input)."""
+    args = parse_args(argv)
+    try:
+        algos = tuple(a.strip() for a in args.algo.split(",") if a.strip())
+        config = cfg.build(args.env, args.preset, algos, args.seeds, parse_overrides(args.set))
+        from jaxdeconf.envs import make
+
+        try:
+            make(config.env, **config.env_params)
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
+        folder = pathlib.Path(args.out or f"results/{config.env}-{args.preset}")
+        prepare_folder(folder, config, args.overwrite)
+        return _run(config, folder, quiet=args.quiet)
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
+def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool) -> int:
+    """Train every algorithm not yet finished, then write references, summary and figures."""
+    from jaxdeconf import results
+    from jaxdeconf.train import train_algorithm
+
+    refs = _references(config, folder)
+    for algo in config.algos:
+        if (folder / algo / "DONE").exists():
+            print(f"[{algo}] already finished in {folder}; kept as is (use --overwrite to retrain)")
+            continue
+        timing = train_algorithm(config, algo, folder / algo, progress=not quiet)
+        print(f"[{algo}] compile {timing['compile_s']:.1f} s, run {timing['run_s']:.1f} s")
+    table = results.summarize(folder, config, refs)
+    print(results.write_summary(folder, table, refs))
+    for path in results.plot(folder, config, refs):
+        print(f"wrote {path}")
+    return 0
+
+
+def _references(config: cfg.Config, folder: pathlib.Path) -> dict[str, Any] | None:
+    """Exact bandit references (computed once per folder and cached in references.json)."""
+    if config.env != "bandit":
+        return None
+    import numpy as np
+
+    path = folder / "references.json"
+    if path.exists():
+        return {k: np.asarray(v) for k, v in json.loads(path.read_text()).items()}
+    import jax
+
+    from jaxdeconf.envs import make
+    from jaxdeconf.references import reference_curves
+
+    _, params = make(config.env, **config.env_params)
+    refs = jax.jit(reference_curves, static_argnums=(1, 2))(jax.random.key(12345), params, 20000)
+    refs = {k: np.asarray(v) for k, v in refs.items()}
+    path.write_text(json.dumps({k: v.tolist() for k, v in refs.items()}) + "\n")
+    return refs
+
+
+if __name__ == "__main__":
+    sys.exit(main())
