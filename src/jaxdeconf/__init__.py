@@ -5,12 +5,20 @@ Kept light on purpose: ``import jaxdeconf`` imports no Brax, MuJoCo or matplotli
 
 import os
 
-# XLA's CPU runtime (jaxlib 0.10.2) deadlocked here, reproducibly, running the vmapped training chunk at 4 seeds:
-# every worker thread idle, the host waiting forever. Its concurrency-optimised scheduler is the trigger; turning it
-# off fixed every case measured (4, 10 and 16 seeds). XLA reads the flag when the backend starts, so setting it at
-# import suffices as long as nothing has run a computation before. It does not affect GPU backends.
-_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler=false"
-if _FLAG.split("=")[0] not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + _FLAG).strip()
+# XLA's CPU runtime in jaxlib 0.10.2 deadlocked here, reproducibly, on the seed-vmapped programs at 4+ seeds on the
+# 2-core machine: every worker thread (Eigen pool and llvm-worker codegen threads) idle, the host waiting forever.
+# Each flag below alone fixed some cases but not all; only with the forced device count (which enlarges the CPU
+# client's thread pool) did the 10-seed, 25-iteration chunk run. Together they fixed every case measured.
+# XLA reads XLA_FLAGS when the CPU backend starts, so setting them at import works as long as no computation ran
+# before. They only affect the CPU backend; a user's own XLA_FLAGS setting of the same flag wins.
+_CPU_FLAGS = (
+    "--xla_force_host_platform_device_count=8",
+    "--xla_cpu_parallel_codegen_split_count=1",
+    "--xla_cpu_multi_thread_eigen=false",
+    "--xla_cpu_use_xnnpack=false",
+    "--xla_cpu_enable_concurrency_optimized_scheduler=false",
+)
+_current = os.environ.get("XLA_FLAGS", "")
+os.environ["XLA_FLAGS"] = " ".join([_current, *(f for f in _CPU_FLAGS if f.split("=")[0] not in _current)]).strip()
 
 __version__ = "0.1.0"

@@ -86,12 +86,12 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "train.episodes_per_iter": 32,
             "train.batch_size": 32,
             "train.buffer_episodes": 32,
-            "train.policy_steps": 4,
+            "train.policy_steps": 16,
             "train.encoder_steps": 4,
             "train.policy_lr": 3e-3,
             "train.encoder_lr": 3e-3,
             "train.beta": 0.01,
-            "train.eval_episodes": 128,
+            "train.eval_episodes": 256,
         },
         # The reference code's bandit configuration (batch 32, 100 policy / 1 encoder step per iteration).
         "paper": {

@@ -74,12 +74,17 @@ class Encoder(nn.Module):
         """Sub-networks shared by ``embed`` and ``recur``."""
         self.obs_net = MLP((self.width, self.width))
         self.action_net = nn.Dense(self.action_embed)
+        self.fuse = MLP((self.width,))
         self.cell = nn.GRUCell(self.hidden)
         self.out = nn.Dense(2 * self.latent)
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
-        """GRU inputs for any leading shape: [..., width + action_embed]."""
-        return jnp.concatenate([self.obs_net(obs), self.action_net(prev_action)], axis=-1)
+        """GRU inputs [..., width] for any leading shape.
+
+        The evidence in a transition is an interaction (which action led to which observation); one fused block on
+        the concatenated embeddings lets the GRU read it directly, which learned several times faster on the bandit.
+        """
+        return self.fuse(jnp.concatenate([self.obs_net(obs), self.action_net(prev_action)], axis=-1))
 
     def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         """One GRU step: carry [B, hidden], x [B, E] -> new carry, (mean, logvar) each [B, latent]."""
@@ -134,13 +139,14 @@ class RecurrentPolicy(nn.Module):
         """Sub-networks shared by ``embed`` and ``recur``."""
         self.obs_net = MLP((self.width, self.width))
         self.action_net = nn.Dense(self.action_embed)
+        self.fuse = MLP((self.width,))
         self.cell = nn.GRUCell(self.hidden)
         self.head = MLP((self.width,))
         self.out = nn.Dense(self.out_size)
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
-        """GRU inputs for any leading shape."""
-        return jnp.concatenate([self.obs_net(obs), self.action_net(prev_action)], axis=-1)
+        """GRU inputs [..., width] for any leading shape (the same fused block as the encoder's, for parity)."""
+        return self.fuse(jnp.concatenate([self.obs_net(obs), self.action_net(prev_action)], axis=-1))
 
     def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         """One GRU step -> new carry, head output [B, out_size]."""

@@ -33,7 +33,6 @@ def build_algorithm(config: Config, name: str) -> Algorithm:
     return make_algorithm(name, env, env_params, config)
 
 
-@functools.lru_cache(maxsize=16)
 def compiled_chunk(algo: Algorithm, length: int) -> Any:
     """``jit(vmap(train_chunk))`` for chunks of ``length`` iterations."""
     return jax.jit(jax.vmap(functools.partial(algo.train_chunk, length=length)))
@@ -87,7 +86,7 @@ def train_algorithm(config: Config, name: str, folder: pathlib.Path, progress: b
     last_eval: dict[str, np.ndarray] = {}
     while done < t.iterations:
         length = min(t.chunk, t.iterations - done)
-        fn = full if length == t.chunk else compiled_chunk(algo, length)
+        fn = full if length == t.chunk else compiled_chunk(algo, length)  # Only a shorter last chunk recompiles.
         t1 = time.perf_counter()
         states, per_iter, evals = fn(states)
         jax.block_until_ready(states)

@@ -1,0 +1,32 @@
+"""Shared tiny configurations, so each compiled shape is built once per session."""
+
+from __future__ import annotations
+
+import pytest
+
+import jaxdeconf  # noqa: F401  (sets the XLA CPU flag before any computation)
+from jaxdeconf.config import build
+
+TINY = {
+    "model.width": "16",
+    "model.action_embed": "8",
+    "model.gru": "16",
+    "model.bc_gru": "16",
+    "model.latent": "3",
+    "train.iterations": "4",
+    "train.warmup": "1",
+    "train.chunk": "2",
+    "train.episodes_per_iter": "4",
+    "train.batch_size": "4",
+    "train.buffer_episodes": "8",
+    "train.policy_steps": "2",
+    "train.encoder_steps": "2",
+    "train.eval_episodes": "4",
+    "env.horizon": "10",
+}
+
+
+@pytest.fixture
+def tiny_config():
+    """A few-second config of all three algorithms on a 10-step bandit."""
+    return lambda seeds=2, **extra: build("bandit", "cpu", ("bc", "oracle", "dil"), seeds, {**TINY, **extra})

@@ -1,0 +1,82 @@
+"""The CLI end to end on a tiny config, and every kind of bad input: one line, exit code 2, nothing lost."""
+
+from __future__ import annotations
+
+import pathlib
+
+import pytest
+
+from conftest import TINY
+from jaxdeconf.run import main
+
+TINY_ARGS = [arg for k, v in TINY.items() for arg in ("--set", f"{k}={v}")]
+
+
+def _snapshot(folder: pathlib.Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _bad(capsys, argv, expected):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("error: ") and expected in err, err
+
+
+def test_bad_input_one_line_exit_2(tmp_path, capsys):
+    out = ["--out", str(tmp_path / "r")]
+    _bad(capsys, ["--env", "cartpole", *out], "unknown env 'cartpole'; allowed: bandit")
+    _bad(capsys, ["--algo", "bc,gail", *out], "unknown algorithm 'gail'; allowed: bc, oracle, dil")
+    _bad(capsys, ["--seeds", "0", *out], "seeds=0 is not allowed: need a positive integer")
+    _bad(capsys, ["--set", "train.iterations=-3", *out], "train.iterations=-3 is not allowed")
+    _bad(capsys, ["--set", "env.p=1.5", *out], "p=1.5 is outside the allowed range (0, 1]")
+    _bad(capsys, ["--set", "env.q=0", *out], "q=0.0 is outside the allowed range (0, 1]")
+    _bad(capsys, ["--set", "train.nope=1", *out], "unknown field 'train.nope'")
+    _bad(capsys, ["--set", "model.gru=abc", *out], "model.gru='abc' is not a valid int")
+    _bad(capsys, ["--preset", "huge", *out], "unknown preset 'huge'")
+    assert not (tmp_path / "r").exists()  # Nothing was written for bad input.
+
+
+def test_run_then_protect_results(tmp_path, capsys):
+    folder = tmp_path / "run"
+    argv = ["--algo", "bc,dil", "--seeds", "2", "--out", str(folder), "--quiet", *TINY_ARGS]
+    assert main(argv) == 0
+    for name in ("config.json", "references.json", "summary.md", "summary.csv", "learning_curves.png", "p_best.png",
+                 "bc/metrics.jsonl", "dil/metrics.jsonl", "dil/curves.npz", "dil/DONE"):
+        assert (folder / name).exists(), name
+    assert "| dil |" in (folder / "summary.md").read_text()
+    before = _snapshot(folder)
+
+    # The same command on a finished run trains nothing and rewrites no results.
+    capsys.readouterr()
+    assert main(argv) == 0
+    assert "already finished" in capsys.readouterr().out
+    after = _snapshot(folder)
+    for name, data in before.items():
+        if name.endswith(("metrics.jsonl", ".npz", "DONE", "config.json")) or "checkpoints" in name:
+            assert after[name] == data, name
+
+    # A different config on the same folder is refused, naming the difference.
+    _bad(capsys, [*argv, "--set", "train.iterations=6"], "holds a different config (train.iterations: 4 there, 6 now)")
+    assert _snapshot(folder) == after
+
+    # A corrupt checkpoint is reported in one line and left in place.
+    (folder / "dil" / "DONE").unlink()
+    for p in (folder / "dil" / "checkpoints").rglob("*"):
+        if p.is_file() and p.stat().st_size > 0:
+            p.write_bytes(b"garbage")
+    damaged = _snapshot(folder)
+    _bad(capsys, argv, "is unreadable")
+    assert _snapshot(folder) == damaged
+
+    # --overwrite is the one way to start over.
+    assert main([*argv, "--overwrite"]) == 0
+    assert (folder / "dil" / "DONE").exists()
+
+
+@pytest.mark.parametrize("value", ["1.0", "0.5"])
+def test_probabilities_in_range_are_accepted(tmp_path, value):
+    from jaxdeconf.config import build
+
+    config = build("bandit", "cpu", ("bc",), 1, {"env.p": value, "env.q": value})
+    assert config.env_params == {"p": value, "q": value}

@@ -1,0 +1,103 @@
+"""Determinism, seed i of a sweep equal to a lone run of seed i, exact resume, buffers, the latent cache."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdeconf.algos import Deconfounded
+from jaxdeconf.checkpoint import Checkpoints
+from jaxdeconf.data import buffer_add, buffer_sample
+from jaxdeconf.train import build_algorithm, seed_keys, train_algorithm
+
+
+def _rows(folder):
+    return [json.loads(line) for line in (folder / "metrics.jsonl").read_text().splitlines()]
+
+
+@pytest.mark.parametrize("algo", ["bc", "dil"])
+def test_same_seed_same_metrics(tmp_path, tiny_config, algo):
+    config = tiny_config()
+    train_algorithm(config, algo, tmp_path / "a", progress=False)
+    train_algorithm(config, algo, tmp_path / "b", progress=False)
+    assert _rows(tmp_path / "a") == _rows(tmp_path / "b")
+    assert any("eval_return" in r for r in _rows(tmp_path / "a"))
+
+
+def test_seed_of_sweep_equals_single_run(tmp_path, tiny_config):
+    sweep = tiny_config(seeds=3)
+    single = dataclasses.replace(tiny_config(seeds=1), seed_start=2)
+    train_algorithm(sweep, "dil", tmp_path / "sweep", progress=False)
+    train_algorithm(single, "dil", tmp_path / "single", progress=False)
+    a = [r for r in _rows(tmp_path / "sweep") if r["seed"] == 2]
+    b = _rows(tmp_path / "single")
+    assert len(a) == len(b) == 4
+    for ra, rb in zip(a, b, strict=True):
+        assert ra.keys() == rb.keys()
+        for key in ra:
+            if isinstance(ra[key], float):
+                np.testing.assert_allclose(ra[key], rb[key], rtol=1e-4, atol=1e-5, err_msg=key)
+            else:
+                assert ra[key] == rb[key]
+
+
+def test_interrupted_run_resumes_exactly(tmp_path, tiny_config, monkeypatch):
+    config = tiny_config()
+    train_algorithm(config, "dil", tmp_path / "whole", progress=False)
+
+    real_save = Checkpoints.save
+    calls = []
+
+    def save_then_die(self, step, state):
+        real_save(self, step, state)
+        calls.append(step)
+        if len(calls) == 1:
+            raise KeyboardInterrupt  # As if the user pressed Ctrl-C after the first chunk.
+
+    monkeypatch.setattr(Checkpoints, "save", save_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        train_algorithm(config, "dil", tmp_path / "cut", progress=False)
+    assert not (tmp_path / "cut" / "DONE").exists()
+    assert max(r["iteration"] for r in _rows(tmp_path / "cut")) == 2
+    train_algorithm(config, "dil", tmp_path / "cut", progress=False)  # Resumes at iteration 2.
+    assert calls == [2, 4]
+    assert _rows(tmp_path / "cut") == _rows(tmp_path / "whole")
+
+
+def test_buffer_is_circular_and_samples_distinct_episodes(tiny_config):
+    algo = build_algorithm(tiny_config(), "bc")
+    state = algo.init(jax.random.key(0))
+    buf = state.expert_buffer
+    assert buf.capacity == 8
+    for i in range(3):  # 3 inserts of 4 episodes into 8 slots: the first 4 are overwritten.
+        traj = jax.tree.map(lambda x, i=i: jnp.full((x.shape[0], 4) + x.shape[2:], i, x.dtype), buf.data)
+        buf = buffer_add(buf, traj)
+    assert int(buf.size) == 8 and int(buf.pos) == 4
+    np.testing.assert_array_equal(buf.data.reward[0], [2, 2, 2, 2, 1, 1, 1, 1])
+    batch = buffer_sample(buf, jax.random.key(1), 8)
+    np.testing.assert_array_equal(np.sort(np.asarray(batch.reward[0])), [1, 1, 1, 1, 2, 2, 2, 2])
+
+
+def test_cached_latents_equal_per_batch_encoding(tiny_config):
+    algo = build_algorithm(tiny_config(), "dil")
+    assert isinstance(algo, Deconfounded)
+    state = algo.init(jax.random.key(0))
+    state, _ = algo.collect_expert(state, jax.random.key(1))
+    state = state.replace(expert_buffer=buffer_add(state.expert_buffer, state.expert_buffer.data))
+    context = algo.policy_context(state)
+    assert context is not None  # 8 episodes <= batch 4 x 2 steps: the cache is used.
+    idx = jnp.array([5, 0, 3, 1])
+    batch = jax.tree.map(lambda d: d[:, idx], state.expert_buffer.data)
+    cached = algo.policy_outputs(state.policy.params, state, batch, context[:, idx])
+    direct = algo.policy_outputs(state.policy.params, state, batch)
+    np.testing.assert_allclose(cached, direct, rtol=1e-5, atol=1e-6)
+
+
+def test_seed_keys_follow_seed_start(tiny_config):
+    config = dataclasses.replace(tiny_config(seeds=2), seed_start=5)
+    np.testing.assert_array_equal(jax.random.key_data(seed_keys(config)[1]), jax.random.key_data(jax.random.key(6)))
