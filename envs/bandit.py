@@ -12,7 +12,6 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 from flax import struct
-
 from jaxdeconf.envs.base import ActionSpace, Environment, Observation, StepResult
 
 

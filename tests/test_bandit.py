@@ -6,7 +6,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from jaxdeconf.envs import make
 from jaxdeconf.envs.bandit import BanditState
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pathlib
 
 import pytest
-
 from conftest import TINY
+
 from jaxdeconf.run import main
 
 TINY_ARGS = [arg for k, v in TINY.items() for arg in ("--set", f"{k}={v}")]

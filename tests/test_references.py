@@ -8,8 +8,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from jaxdeconf.envs import make
+
 from jaxdeconf.references import belief_update, policy_probs, reference_curves
 
 

@@ -75,7 +75,7 @@ def test_buffer_is_circular_and_samples_distinct_episodes(tiny_config):
     buf = state.expert_buffer
     assert buf.capacity == 8
     for i in range(3):  # 3 inserts of 4 episodes into 8 slots: the first 4 are overwritten.
-        traj = jax.tree.map(lambda x, i=i: jnp.full((x.shape[0], 4) + x.shape[2:], i, x.dtype), buf.data)
+        traj = jax.tree.map(lambda x, i=i: jnp.full((x.shape[0], 4, *x.shape[2:]), i, x.dtype), buf.data)
         buf = buffer_add(buf, traj)
     assert int(buf.size) == 8 and int(buf.pos) == 4
     np.testing.assert_array_equal(buf.data.reward[0], [2, 2, 2, 2, 1, 1, 1, 1])

@@ -114,7 +114,7 @@ class Buffer:
 
 def buffer_init(example: Trajectory, capacity: int) -> Buffer:
     """An empty buffer shaped like ``example`` (any batch size) with room for ``capacity`` episodes."""
-    data = jax.tree.map(lambda x: jnp.zeros((x.shape[0], capacity) + x.shape[2:], x.dtype), example)
+    data = jax.tree.map(lambda x: jnp.zeros((x.shape[0], capacity, *x.shape[2:]), x.dtype), example)
     return Buffer(data=data, pos=jnp.zeros((), jnp.int32), size=jnp.zeros((), jnp.int32))
 
 

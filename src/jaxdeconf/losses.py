@@ -58,7 +58,7 @@ def encoder_scan(
 ) -> tuple[jax.Array, jax.Array]:
     """Posterior means and log-variances [T, B, L] of q_phi over a sequence (obs and prev_action [T, B, ...])."""
     inputs = encoder.apply(params, obs, prev_action, method=Encoder.embed)
-    carry = jnp.zeros(obs.shape[1:-1] + (encoder.hidden,), jnp.float32)
+    carry = jnp.zeros((*obs.shape[1:-1], encoder.hidden), jnp.float32)
 
     def body(carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         return encoder.apply(params, carry, x, method=Encoder.recur)
@@ -70,7 +70,7 @@ def encoder_scan(
 def recurrent_policy_scan(policy: RecurrentPolicy, params: Any, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
     """Head outputs [T, B, out] of a recurrent policy over a sequence."""
     inputs = policy.apply(params, obs, prev_action, method=RecurrentPolicy.embed)
-    carry = jnp.zeros(obs.shape[1:-1] + (policy.hidden,), jnp.float32)
+    carry = jnp.zeros((*obs.shape[1:-1], policy.hidden), jnp.float32)
 
     def body(carry: jax.Array, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         return policy.apply(params, carry, x, method=RecurrentPolicy.recur)
@@ -90,7 +90,7 @@ def shift_ahead(x: jax.Array, k: int) -> jax.Array:
     """x[t + k] at position t along axis 0, zero-padded past the end."""
     if k == 0:
         return x
-    return jnp.concatenate([x[k:], jnp.zeros((k,) + x.shape[1:], x.dtype)], axis=0)
+    return jnp.concatenate([x[k:], jnp.zeros((k, *x.shape[1:]), x.dtype)], axis=0)
 
 
 def prediction_nll(

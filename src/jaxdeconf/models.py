@@ -94,7 +94,7 @@ class Encoder(nn.Module):
 
     def __call__(self, obs: jax.Array, prev_action: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         """One step from a zero carry (used for initialisation)."""
-        carry = jnp.zeros(obs.shape[:-1] + (self.hidden,), jnp.float32)
+        carry = jnp.zeros((*obs.shape[:-1], self.hidden), jnp.float32)
         return self.recur(carry, self.embed(obs, prev_action))
 
 
@@ -155,5 +155,5 @@ class RecurrentPolicy(nn.Module):
 
     def __call__(self, obs: jax.Array, prev_action: jax.Array) -> tuple[jax.Array, jax.Array]:
         """One step from a zero carry (used for initialisation)."""
-        carry = jnp.zeros(obs.shape[:-1] + (self.hidden,), jnp.float32)
+        carry = jnp.zeros((*obs.shape[:-1], self.hidden), jnp.float32)
         return self.recur(carry, self.embed(obs, prev_action))

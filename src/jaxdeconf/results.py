@@ -50,7 +50,8 @@ def summarize(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None)
         _, returns = eval_table(rows, "eval_return")
         final = returns[:, -1]
         m, se = mean_se(final)
-        row: dict[str, Any] = {"algo": algo, "seeds": int(final.size), "iterations": int(max(r["iteration"] for r in rows)),
+        iterations = int(max(r["iteration"] for r in rows))
+        row: dict[str, Any] = {"algo": algo, "seeds": int(final.size), "iterations": iterations,
                                "return_mean": float(m), "return_se": float(se)}
         extra_keys = sorted({k for r in rows for k in r if k.startswith("eval_") and k not in ("eval_return",)})
         for key in extra_keys:

@@ -1,0 +1,69 @@
+"""``make bench``: seconds per iteration at the reference code's bandit configuration, seed scaling, and the CPU
+default's wall time, compile time and peak memory. Prints a table; numbers are measured on the machine it runs on."""
+
+from __future__ import annotations
+
+import functools
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+
+import jax
+
+import jaxdeconf  # noqa: F401  (XLA CPU flags)
+from jaxdeconf.config import build
+from jaxdeconf.train import build_algorithm, seed_keys
+
+# The authors' PyTorch code on this same 2-core machine (from the issue): seconds per iteration.
+TORCH_S_PER_ITER = {"dil": 17.0, "bc": 165.0}
+
+
+def time_iterations(algo_name: str, preset: str, seeds: int, iters: int, overrides: dict) -> tuple[float, float]:
+    """(compile seconds, run seconds per iteration) of a chunk of ``iters`` iterations over ``seeds`` seeds."""
+    config = build("bandit", preset, (algo_name,), seeds, {"train.warmup": 0, "train.chunk": iters, **overrides})
+    algo = build_algorithm(config, algo_name)
+    states = jax.jit(jax.vmap(algo.init))(seed_keys(config))
+    jax.block_until_ready(states)
+    fn = jax.jit(jax.vmap(functools.partial(algo.train_chunk, length=iters)))
+    t0 = time.perf_counter()
+    compiled = fn.lower(states).compile()
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    jax.block_until_ready(compiled(states))
+    return compile_s, (time.perf_counter() - t0) / iters
+
+
+def main() -> None:
+    """Run every measurement and print the table."""
+    print(f"jax {jax.__version__} on {jax.devices()[0].platform}")
+    print("\n## Reference code's bandit configuration (batch 32, 100 policy steps, 1 encoder step per iteration;")
+    print("##  GRU 500 for dil, 1000 for bc; width 128 / 250), 1 seed")
+    for name, over in (("dil", {"model.width": 128}), ("bc", {"model.width": 250})):
+        c, s = time_iterations(name, "paper", 1, 2, over)
+        print(f"{name:4s}: {s:7.2f} s/iteration (compile {c:.1f} s); PyTorch reference {TORCH_S_PER_ITER[name]:.0f} s "
+              f"-> {TORCH_S_PER_ITER[name] / s:.1f}x faster per seed")
+
+    print("\n## CPU preset: seconds per iteration versus number of seeds (one compiled program)")
+    for name in ("dil", "bc"):
+        for seeds in (1, 4, 16):
+            c, s = time_iterations(name, "cpu", seeds, 5, {})
+            print(f"{name:4s} seeds={seeds:2d}: {s:6.3f} s/iteration, {s / seeds:6.3f} s per seed-iteration "
+                  f"(compile {c:.1f} s)")
+
+    print("\n## CPU default end to end: python -m jaxdeconf.run --env bandit --algo bc,dil --seeds 10")
+    with tempfile.TemporaryDirectory() as out:
+        t0 = time.perf_counter()
+        proc = subprocess.run([sys.executable, "-m", "jaxdeconf.run", "--seeds", "10", "--out", out, "--quiet"],
+                              capture_output=True, text=True, check=False)
+        wall = time.perf_counter() - t0
+        peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+        timing = [line for line in proc.stdout.splitlines() if "compile" in line and "run" in line]
+        print(f"wall {wall:.1f} s, peak memory {peak:.0f} MiB, exit {proc.returncode}")
+        for line in timing:
+            print("  " + line)
+
+
+if __name__ == "__main__":
+    main()
