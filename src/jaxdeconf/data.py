@@ -66,11 +66,7 @@ def rollout(
         next_state, result = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
             jax.random.split(key_env, num_episodes), state, action, env_params
         )
-        if space.discrete:
-            probs = jax.nn.softmax(out, axis=-1)
-            p_best = jnp.where(best >= 0, jnp.take_along_axis(probs, jnp.maximum(best, 0)[:, None], 1)[:, 0], jnp.nan)
-        else:
-            p_best = jnp.full((num_episodes,), jnp.nan)
+        p_best = best_action_prob(out, best) if space.discrete else jnp.full((num_episodes,), jnp.nan)
         mask = alive.astype(jnp.float32)
         record = {
             "obs": obs,
@@ -152,8 +148,6 @@ def buffer_sample(buffer: Buffer, key: jax.Array, batch: int) -> Trajectory:
 
 def replay(actor: Actor, actor_params: Any, traj: Trajectory, space: Any) -> jax.Array:
     """Teacher-force ``actor`` along ``traj`` (its own observations and actions): head outputs [T, B, ...]."""
-    from jaxdeconf.models import action_features
-
     T = traj.horizon
     obs = jax.tree.map(lambda x: x[:T], traj.obs)
     feats = action_features(space, traj.action)
@@ -168,7 +162,7 @@ def replay(actor: Actor, actor_params: Any, traj: Trajectory, space: Any) -> jax
 
 
 def best_action_prob(out: jax.Array, best: jax.Array) -> jax.Array:
-    """Probability a categorical head output [T, B, n] gives the best action [T, B] (NaN where best < 0)."""
+    """Probability a categorical head output [..., n] gives the best action [...] (NaN where best < 0)."""
     probs = jax.nn.softmax(out, axis=-1)
     p = jnp.take_along_axis(probs, jnp.maximum(best, 0)[..., None], axis=-1)[..., 0]
     return jnp.where(best >= 0, p, jnp.nan)

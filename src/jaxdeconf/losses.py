@@ -11,7 +11,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from jaxdeconf.models import Decoder, Encoder, RecurrentPolicy
+from jaxdeconf.models import Decoder, Encoder, RecurrentPolicy, log_prob
 
 LOG_2PI = jnp.log(2.0 * jnp.pi)
 
@@ -153,6 +153,4 @@ def elbo_loss(
 
 def nll_from_outputs(space: Any, out: jax.Array, action: jax.Array, valid: jax.Array) -> jax.Array:
     """Mean negative log-likelihood of actions under head outputs over valid steps (eq. 10's BC loss)."""
-    from jaxdeconf.models import log_prob
-
     return masked_mean(-log_prob(space, out, action), valid)
