@@ -30,6 +30,21 @@ class MLP(nn.Module):
         return x
 
 
+class Interaction(nn.Module):
+    """Features of two embeddings x [..., X] and a [..., E] with their product: [x, a, Dense_E(x) * a].
+
+    The evidence in a transition is an interaction (which action led to which observation; which latent changes what
+    an action does). With a plain concatenation gradient descent found that interaction slowly and erratically (on
+    the bandit the ELBO sat on plateaus for 600 to over 1500 steps, depending on the seed); the multiplicative term
+    lets the next layer read it directly (near the Bayes-optimal ELBO within about 400 steps on every seed tried).
+    """
+
+    @nn.compact
+    def __call__(self, x: jax.Array, a: jax.Array) -> jax.Array:
+        """[..., X + 2E] features."""
+        return jnp.concatenate([x, a, nn.Dense(a.shape[-1])(x) * a], axis=-1)
+
+
 def action_features(space: ActionSpace, action: jax.Array) -> jax.Array:
     """Vector encoding of an action: one-hot for discrete spaces, the action itself for boxes."""
     if space.discrete:
@@ -74,17 +89,14 @@ class Encoder(nn.Module):
         """Sub-networks shared by ``embed`` and ``recur``."""
         self.obs_net = MLP((self.width, self.width))
         self.action_net = nn.Dense(self.action_embed)
+        self.interact = Interaction()
         self.fuse = MLP((self.width,))
         self.cell = nn.GRUCell(self.hidden)
         self.out = nn.Dense(2 * self.latent)
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
-        """GRU inputs [..., width] for any leading shape.
-
-        The evidence in a transition is an interaction (which action led to which observation); one fused block on
-        the concatenated embeddings lets the GRU read it directly, which learned several times faster on the bandit.
-        """
-        return self.fuse(jnp.concatenate([self.obs_net(obs), self.action_net(prev_action)], axis=-1))
+        """GRU inputs [..., width] for any leading shape: the observation and the action that led to it, fused."""
+        return self.fuse(self.interact(self.obs_net(obs), self.action_net(prev_action)))
 
     def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         """One GRU step: carry [B, hidden], x [B, E] -> new carry, (mean, logvar) each [B, latent]."""
@@ -108,9 +120,8 @@ class Decoder(nn.Module):
     @nn.compact
     def __call__(self, z: jax.Array, obs: jax.Array, action: jax.Array) -> jax.Array:
         """Predict the next observation's parameters from the latent, the current observation and action."""
-        h = jnp.concatenate(
-            [z, MLP((self.width, self.width))(obs), nn.Dense(self.action_embed)(action)], axis=-1
-        )
+        latent_action = Interaction()(z, nn.Dense(self.action_embed)(action))
+        h = jnp.concatenate([MLP((self.width, self.width))(obs), latent_action], axis=-1)
         return nn.Dense(self.obs_size)(MLP((self.width, self.width))(h))
 
 
@@ -139,6 +150,7 @@ class RecurrentPolicy(nn.Module):
         """Sub-networks shared by ``embed`` and ``recur``."""
         self.obs_net = MLP((self.width, self.width))
         self.action_net = nn.Dense(self.action_embed)
+        self.interact = Interaction()
         self.fuse = MLP((self.width,))
         self.cell = nn.GRUCell(self.hidden)
         self.head = MLP((self.width,))
@@ -146,7 +158,7 @@ class RecurrentPolicy(nn.Module):
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
         """GRU inputs [..., width] for any leading shape (the same fused block as the encoder's, for parity)."""
-        return self.fuse(jnp.concatenate([self.obs_net(obs), self.action_net(prev_action)], axis=-1))
+        return self.fuse(self.interact(self.obs_net(obs), self.action_net(prev_action)))
 
     def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         """One GRU step -> new carry, head output [B, out_size]."""
