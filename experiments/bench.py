@@ -14,6 +14,7 @@ import jax
 
 import jaxdeconf  # noqa: F401  (XLA CPU flags)
 from jaxdeconf.config import build
+from jaxdeconf.run import available_cores, pin_to_core
 from jaxdeconf.train import build_algorithm, seed_keys
 
 # The authors' PyTorch code on this same 2-core machine (from the issue): seconds per iteration.
@@ -37,7 +38,10 @@ def time_iterations(algo_name: str, preset: str, seeds: int, iters: int, overrid
 
 def main() -> None:
     """Run every measurement and print the table."""
-    print(f"jax {jax.__version__} on {jax.devices()[0].platform}")
+    cores = available_cores()
+    pin_to_core(cores[0])  # As every training process does (see jaxdeconf.run.pin_to_core).
+    print(f"jax {jax.__version__} on {jax.devices()[0].platform}; {len(cores)} cores available, "
+          "in-process timings on one core")
     print("\n## Reference code's bandit configuration (batch 32, 100 policy steps, 1 encoder step per iteration;")
     print("##  GRU 500 for dil, 1000 for bc; width 128 / 250), 1 seed")
     for name, over in (("dil", {"model.width": 128}), ("bc", {"model.width": 250})):
@@ -53,6 +57,7 @@ def main() -> None:
                   f"(compile {c:.1f} s)")
 
     print("\n## CPU default end to end: python -m jaxdeconf.run --env bandit --algo bc,dil --seeds 10")
+    print(f"##  (bc and dil side by side, one core each of the {len(cores)} available)")
     with tempfile.TemporaryDirectory() as out:
         t0 = time.perf_counter()
         proc = subprocess.run([sys.executable, "-m", "jaxdeconf.run", "--seeds", "10", "--out", out, "--quiet"],

@@ -6,6 +6,11 @@ import pytest
 
 import jaxdeconf  # noqa: F401  (sets the XLA CPU flag before any computation)
 from jaxdeconf.config import build
+from jaxdeconf.run import available_cores, pin_to_core
+
+# Like every training process, the tests run on one core (see jaxdeconf.run.pin_to_core); the CLI tests' worker
+# processes still spread over the available cores.
+pin_to_core(available_cores()[0])
 
 TINY = {
     "model.width": "16",

@@ -16,28 +16,28 @@ def _snapshot(folder: pathlib.Path) -> dict[str, bytes]:
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
-def _bad(capsys, argv, expected):
+def _bad(capfd, argv, expected):
     assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
+    err = capfd.readouterr().err.strip()  # capfd: training runs in worker processes.
     assert len(err.splitlines()) == 1, err
     assert err.startswith("error: ") and expected in err, err
 
 
-def test_bad_input_one_line_exit_2(tmp_path, capsys):
+def test_bad_input_one_line_exit_2(tmp_path, capfd):
     out = ["--out", str(tmp_path / "r")]
-    _bad(capsys, ["--env", "cartpole", *out], "unknown env 'cartpole'; allowed: bandit")
-    _bad(capsys, ["--algo", "bc,gail", *out], "unknown algorithm 'gail'; allowed: bc, oracle, dil")
-    _bad(capsys, ["--seeds", "0", *out], "seeds=0 is not allowed: need a positive integer")
-    _bad(capsys, ["--set", "train.iterations=-3", *out], "train.iterations=-3 is not allowed")
-    _bad(capsys, ["--set", "env.p=1.5", *out], "p=1.5 is outside the allowed range (0, 1]")
-    _bad(capsys, ["--set", "env.q=0", *out], "q=0.0 is outside the allowed range (0, 1]")
-    _bad(capsys, ["--set", "train.nope=1", *out], "unknown field 'train.nope'")
-    _bad(capsys, ["--set", "model.gru=abc", *out], "model.gru='abc' is not a valid int")
-    _bad(capsys, ["--preset", "huge", *out], "unknown preset 'huge'")
+    _bad(capfd, ["--env", "cartpole", *out], "unknown env 'cartpole'; allowed: bandit")
+    _bad(capfd, ["--algo", "bc,gail", *out], "unknown algorithm 'gail'; allowed: bc, oracle, dil")
+    _bad(capfd, ["--seeds", "0", *out], "seeds=0 is not allowed: need a positive integer")
+    _bad(capfd, ["--set", "train.iterations=-3", *out], "train.iterations=-3 is not allowed")
+    _bad(capfd, ["--set", "env.p=1.5", *out], "p=1.5 is outside the allowed range (0, 1]")
+    _bad(capfd, ["--set", "env.q=0", *out], "q=0.0 is outside the allowed range (0, 1]")
+    _bad(capfd, ["--set", "train.nope=1", *out], "unknown field 'train.nope'")
+    _bad(capfd, ["--set", "model.gru=abc", *out], "model.gru='abc' is not a valid int")
+    _bad(capfd, ["--preset", "huge", *out], "unknown preset 'huge'")
     assert not (tmp_path / "r").exists()  # Nothing was written for bad input.
 
 
-def test_run_then_protect_results(tmp_path, capsys):
+def test_run_then_protect_results(tmp_path, capfd):
     folder = tmp_path / "run"
     argv = ["--algo", "bc,dil", "--seeds", "2", "--out", str(folder), "--quiet", *TINY_ARGS]
     assert main(argv) == 0
@@ -48,16 +48,16 @@ def test_run_then_protect_results(tmp_path, capsys):
     before = _snapshot(folder)
 
     # The same command on a finished run trains nothing and rewrites no results.
-    capsys.readouterr()
+    capfd.readouterr()
     assert main(argv) == 0
-    assert "already finished" in capsys.readouterr().out
+    assert "already finished" in capfd.readouterr().out
     after = _snapshot(folder)
     for name, data in before.items():
         if name.endswith(("metrics.jsonl", ".npz", "DONE", "config.json")) or "checkpoints" in name:
             assert after[name] == data, name
 
     # A different config on the same folder is refused, naming the difference.
-    _bad(capsys, [*argv, "--set", "train.iterations=6"], "holds a different config (train.iterations: 4 there, 6 now)")
+    _bad(capfd, [*argv, "--set", "train.iterations=6"], "holds a different config (train.iterations: 4 there, 6 now)")
     assert _snapshot(folder) == after
 
     # A corrupt checkpoint is reported in one line and left in place.
@@ -66,7 +66,7 @@ def test_run_then_protect_results(tmp_path, capsys):
         if p.is_file() and p.stat().st_size > 0:
             p.write_bytes(b"garbage")
     damaged = _snapshot(folder)
-    _bad(capsys, argv, "is unreadable")
+    _bad(capfd, argv, "is unreadable")
     assert _snapshot(folder) == damaged
 
     # --overwrite is the one way to start over.

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import pathlib
 import shutil
+import subprocess
 import sys
 from typing import Any
 
@@ -25,6 +27,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--out", default=None, help="results folder (default: results/<env>-<preset>)")
     p.add_argument("--overwrite", action="store_true", help="delete an existing results folder and start over")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--jobs", type=int, default=0,
+                   help="algorithms trained at once, each in its own process pinned to its own CPU core "
+                        "(default: one per algorithm, at most one per available core)")
+    p.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # Internal: train one algorithm of --out.
+    p.add_argument("--core", type=int, default=None, help=argparse.SUPPRESS)  # Internal: the worker's core.
+    p.add_argument("--position", type=int, default=0, help=argparse.SUPPRESS)  # Internal: its progress-bar row.
     return p.parse_args(argv)
 
 
@@ -70,7 +78,11 @@ def _first_difference(old: Any, new: Any, path: str = "") -> str:
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code (2 for bad input)."""
     args = parse_args(argv)
+    if args.worker is not None:
+        return _worker(args)
     try:
+        if args.jobs < 0:
+            raise ConfigError(f"--jobs={args.jobs} is not allowed: need 0 (automatic) or a positive integer")
         algos = tuple(a.strip() for a in args.algo.split(",") if a.strip())
         config = cfg.build(args.env, args.preset, algos, args.seeds, parse_overrides(args.set))
         from jaxdeconf.envs import make
@@ -81,24 +93,82 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError(str(err)) from None
         folder = pathlib.Path(args.out or f"results/{config.env}-{args.preset}")
         prepare_folder(folder, config, args.overwrite)
-        return _run(config, folder, quiet=args.quiet)
+        return _run(config, folder, quiet=args.quiet, jobs=args.jobs)
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
 
 
-def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool) -> int:
-    """Train every algorithm not yet finished, then write references, summary and figures."""
-    from jaxdeconf import results
+def pin_to_core(core: int) -> None:
+    """Run this process on one CPU core (Linux; elsewhere a no-op). Must happen before JAX starts its backend.
+
+    XLA's CPU runtime (jaxlib 0.10.2) deadlocked here, intermittently, running the seed-vmapped programs with its
+    threads spread over both cores of a 2-core machine; every run pinned to one core finished. The programs are
+    small-matrix and sequential (scans over time), so one core per algorithm loses little, and the CLI uses the
+    other cores by training the algorithms side by side.
+    """
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {core})
+
+
+# The cores this process was allowed when it started (before any pinning of its own).
+_CORES = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else [0]
+
+
+def available_cores() -> list[int]:
+    """Cores this process was started with (a user's ``taskset`` is respected)."""
+    return list(_CORES)
+
+
+def _worker(args: argparse.Namespace) -> int:
+    """Internal entry point: train one algorithm of an already prepared results folder."""
+    if args.core is not None:
+        pin_to_core(args.core)
     from jaxdeconf.train import train_algorithm
 
+    folder = pathlib.Path(args.out)
+    config = cfg.from_dict(json.loads((folder / "config.json").read_text()))
+    try:
+        timing = train_algorithm(config, args.worker, folder / args.worker, progress=not args.quiet,
+                                 position=args.position)
+    except ConfigError as err:  # E.g. an unreadable checkpoint: one line, and the parent adds none.
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        return 2
+    print(f"[{args.worker}] compile {timing['compile_s']:.1f} s, run {timing['run_s']:.1f} s", flush=True)
+    return 0
+
+
+def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0) -> int:
+    """Train every algorithm not yet finished (side by side, one core each), then write references, summary and
+    figures."""
+    from jaxdeconf import results
+
+    cores = available_cores()
+    pin_to_core(cores[0])  # The exact references below run here, in this process.
     refs = _references(config, folder)
+    pending = []
     for algo in config.algos:
         if (folder / algo / "DONE").exists():
             print(f"[{algo}] already finished in {folder}; kept as is (use --overwrite to retrain)")
-            continue
-        timing = train_algorithm(config, algo, folder / algo, progress=not quiet)
-        print(f"[{algo}] compile {timing['compile_s']:.1f} s, run {timing['run_s']:.1f} s")
+        else:
+            pending.append(algo)
+    jobs = jobs or len(cores)
+    codes = {}
+    for start in range(0, len(pending), jobs):
+        group = pending[start:start + jobs]
+        procs = []
+        for i, algo in enumerate(group):
+            cmd = [sys.executable, "-m", "jaxdeconf.run", "--worker", algo, "--out", str(folder),
+                   "--core", str(cores[i % len(cores)]), "--position", str(i)]
+            procs.append((algo, subprocess.Popen([*cmd, "--quiet"] if quiet else cmd)))
+        codes.update({algo: proc.wait() for algo, proc in procs})
+    if 2 in codes.values():
+        return 2  # A worker already printed its one-line error.
+    failed = [f"{algo} (exit {code})" for algo, code in codes.items() if code != 0]
+    if failed:
+        print(f"error: training failed for {', '.join(failed)}; its checkpoints are kept, so running the same "
+              "command again resumes it", file=sys.stderr)
+        return 1
     table = results.summarize(folder, config, refs)
     print(results.write_summary(folder, table, refs))
     for path in results.plot(folder, config, refs):

@@ -62,8 +62,13 @@ def _truncate_metrics(path: pathlib.Path, done: int) -> None:
     path.write_text("".join(line + "\n" for line in keep))
 
 
-def train_algorithm(config: Config, name: str, folder: pathlib.Path, progress: bool = True) -> dict[str, Any]:
-    """Train ``name`` on all seeds into ``folder``, resuming from its last checkpoint; return timing info."""
+def train_algorithm(
+    config: Config, name: str, folder: pathlib.Path, progress: bool = True, position: int = 0
+) -> dict[str, Any]:
+    """Train ``name`` on all seeds into ``folder``, resuming from its last checkpoint; return timing info.
+
+    ``position`` is the progress bar's row when several trainings share a terminal.
+    """
     folder.mkdir(parents=True, exist_ok=True)
     algo = build_algorithm(config, name)
     metrics_path = folder / "metrics.jsonl"
@@ -79,7 +84,7 @@ def train_algorithm(config: Config, name: str, folder: pathlib.Path, progress: b
     full = compiled_chunk(algo, t.chunk).lower(states).compile()
     compile_s = time.perf_counter() - t0
     bar = tqdm(total=t.iterations, initial=done, desc=f"{config.env}/{name} x{config.seeds} seeds",
-               disable=not progress, unit="it", dynamic_ncols=True)
+               disable=not progress, unit="it", dynamic_ncols=True, position=position)
     if progress:
         bar.write(f"[{name}] compiled one {t.chunk}-iteration chunk for {config.seeds} seeds in {compile_s:.1f} s")
     run_s = 0.0

@@ -1,0 +1,57 @@
+"""Slow tier: the paper's bandit result at the CPU preset, on seeds the preset was not tuned on.
+
+Tolerances come from the 10-seed runs in the README (seeds 0-9): DIL's final best-arm count per seed ranged over
+about ±1.2 around 54, and its online P(best arm) curve stayed within 0.021 of the exact interventional one; naive BC
+ended near the conditional policy's 32. Four seeds average that spread down, so the bounds below hold with margin
+while still failing for any imitator that does not deconfound (BC's count stays far below 52) or that does not learn
+(chance is 20).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import numpy as np
+import pytest
+from jaxdeconf.envs import make
+
+from jaxdeconf.config import build
+from jaxdeconf.references import reference_curves
+from jaxdeconf.train import train_algorithm
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(3600)]
+SEEDS, SEED_START = 4, 100
+
+
+@pytest.fixture(scope="module")
+def refs():
+    _, params = make("bandit")
+    out = jax.jit(reference_curves, static_argnums=(1, 2))(jax.random.key(7), params, 20000)
+    return {k: np.asarray(v) for k, v in out.items()}
+
+
+def _train(tmp_path, algo):
+    config = dataclasses.replace(build("bandit", "cpu", (algo,), SEEDS, {}), seed_start=SEED_START)
+    train_algorithm(config, algo, tmp_path / algo, progress=False)
+    curves = np.load(tmp_path / algo / "curves.npz")
+    rows = [r for r in _read(tmp_path / algo / "metrics.jsonl") if r["iteration"] == config.train.iterations]
+    return np.array([r["eval_return"] for r in rows]), curves["p_best_online"].mean(0), curves["p_best_expert"].mean(0)
+
+
+def _read(path):
+    return [json.loads(line) for line in path.read_text().splitlines() if line]
+
+
+def test_deconfounded_imitator_reaches_the_interventional_policy(tmp_path, refs):
+    returns, online, _ = _train(tmp_path, "dil")
+    assert returns.mean() >= 53.0, returns
+    assert np.max(np.abs(online - refs["interventional_online"])) <= 0.03
+
+
+def test_naive_bc_deludes_itself_like_the_conditional_policy(tmp_path, refs):
+    returns, online, expert = _train(tmp_path, "bc")
+    assert returns.mean() <= 42.0, returns
+    assert np.max(np.abs(online - refs["conditional_online"])) <= 0.05
+    assert np.max(np.abs(expert - refs["conditional_expert"])) <= 0.05
