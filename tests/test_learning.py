@@ -1,10 +1,11 @@
-"""Slow tier: the paper's bandit result at the CPU preset, on seeds the preset was not tuned on.
+"""Slow tier: the paper's bandit result at the CPU preset, on seeds the preset was not tuned on (100-103).
 
-Tolerances come from the 10-seed runs in the README (seeds 0-9): DIL's final best-arm count per seed ranged over
-about ±1.2 around 54, and its online P(best arm) curve stayed within 0.021 of the exact interventional one; naive BC
-ended near the conditional policy's 32. Four seeds average that spread down, so the bounds below hold with margin
-while still failing for any imitator that does not deconfound (BC's count stays far below 52) or that does not learn
-(chance is 20).
+Tolerances come from the 10-seed run of seeds 0-9 reported in the README: dil's final best-arm count had mean 53.6
+and per-seed standard deviation 0.7, so the mean of 4 seeds lies above 52.5 with margin (3 standard errors); its
+online P(best arm) curve stayed within 0.015 of the exact interventional one. Naive BC ended at 35.0 (per-seed
+standard deviation 1.6), within 0.011 of the exact conditional policy on expert histories and within 0.052 online
+(it drifts above the conditional late in the episode). The bounds fail for an imitator that does not deconfound
+(BC's count stays far below 52) and for one that does not learn (chance is 20).
 """
 
 from __future__ import annotations
@@ -46,12 +47,12 @@ def _read(path):
 
 def test_deconfounded_imitator_reaches_the_interventional_policy(tmp_path, refs):
     returns, online, _ = _train(tmp_path, "dil")
-    assert returns.mean() >= 53.0, returns
-    assert np.max(np.abs(online - refs["interventional_online"])) <= 0.03
+    assert returns.mean() >= 52.5, returns
+    assert np.max(np.abs(online - refs["interventional_online"])) <= 0.035
 
 
 def test_naive_bc_deludes_itself_like_the_conditional_policy(tmp_path, refs):
     returns, online, expert = _train(tmp_path, "bc")
     assert returns.mean() <= 42.0, returns
-    assert np.max(np.abs(online - refs["conditional_online"])) <= 0.05
-    assert np.max(np.abs(expert - refs["conditional_expert"])) <= 0.05
+    assert np.max(np.abs(expert - refs["conditional_expert"])) <= 0.03
+    assert np.max(np.abs(online - refs["conditional_online"])) <= 0.07

@@ -5,10 +5,11 @@ Kept light on purpose: ``import jaxdeconf`` imports no Brax, MuJoCo or matplotli
 
 import os
 
-# XLA's CPU runtime in jaxlib 0.10.2 deadlocked here, reproducibly, on the seed-vmapped programs at 4+ seeds on the
+# XLA's CPU runtime in jaxlib 0.10.2 deadlocked here, intermittently, on the seed-vmapped programs at 4+ seeds on the
 # 2-core machine: every worker thread (Eigen pool and llvm-worker codegen threads) idle, the host waiting forever.
-# Each flag below alone fixed some cases but not all; only with the forced device count (which enlarges the CPU
-# client's thread pool) did the 10-seed, 25-iteration chunk run. Together they fixed every case measured.
+# The flags below fixed every isolated reproducer but not the full 10-seed run; what did is running each training
+# process on one core (``jaxdeconf.run.pin_to_core``). The flags stay as a second line of defence: on one core the
+# multi-threaded Eigen pool has nothing to gain anyway.
 # XLA reads XLA_FLAGS when the CPU backend starts, so setting them at import works as long as no computation ran
 # before. They only affect the CPU backend; a user's own XLA_FLAGS setting of the same flag wins.
 _CPU_FLAGS = (

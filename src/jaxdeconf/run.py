@@ -124,7 +124,12 @@ def _worker(args: argparse.Namespace) -> int:
     """Internal entry point: train one algorithm of an already prepared results folder."""
     if args.core is not None:
         pin_to_core(args.core)
+    import logging
+
     from jaxdeconf.train import train_algorithm
+
+    # Orbax logs each damaged file through absl before raising; the one-line error below says it for the user.
+    logging.getLogger("absl").setLevel(logging.CRITICAL)
 
     folder = pathlib.Path(args.out)
     config = cfg.from_dict(json.loads((folder / "config.json").read_text()))
