@@ -26,7 +26,7 @@ lint: setup
 	.venv/bin/ruff check src envs tests experiments
 
 bench: setup
-	$(PY) experiments/bench.py
+	$(PY) experiments/bench.py $(SECTIONS)
 
 clean:
 	rm -rf .venv results .pytest_cache
