@@ -7,7 +7,6 @@ Sections can be chosen: ``make bench SECTIONS="reference seeds e2e"`` (the defau
 from __future__ import annotations
 
 import functools
-import os
 import resource
 import subprocess
 import sys
@@ -43,8 +42,25 @@ def time_iterations(algo_name: str, preset: str, seeds: int, iters: int, overrid
 def main(sections: list[str]) -> None:
     """Run the named measurements (default: all) and print the table."""
     cores = available_cores()
+    if "e2e" in sections:
+        print("\n## CPU default end to end: python -m jaxdeconf.run --env bandit --algo bc,dil --seeds 10")
+        print(f"##  (bc and dil side by side, one core each of the {len(cores)} available; runs first, before this")
+        print("##  process starts JAX and pins itself to one core, so the CLI gets every core)")
+        with tempfile.TemporaryDirectory() as out:
+            t0 = time.perf_counter()
+            proc = subprocess.run(
+                [sys.executable, "-m", "jaxdeconf.run", "--seeds", "10", "--out", out, "--quiet"],
+                capture_output=True, text=True, check=False,
+            )
+            wall = time.perf_counter() - t0
+            peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+            print(f"wall {wall:.1f} s, peak memory of one process {peak:.0f} MiB, exit {proc.returncode}")
+            for line in proc.stdout.splitlines():
+                if "compile" in line and "run" in line:
+                    print("  " + line)
+
     pin_to_core(cores[0])  # As every training process does (see jaxdeconf.run.pin_to_core).
-    print(f"jax {jax.__version__} on {jax.devices()[0].platform}; {len(cores)} cores available, "
+    print(f"\njax {jax.__version__} on {jax.devices()[0].platform}; {len(cores)} cores available, "
           "in-process timings on one core")
 
     if "reference" in sections:
@@ -62,23 +78,6 @@ def main(sections: list[str]) -> None:
                 c, s = time_iterations(name, "cpu", seeds, 5, {})
                 print(f"{name:4s} seeds={seeds:2d}: {s:6.3f} s/iteration, {s / seeds:6.3f} s per seed-iteration "
                       f"(compile {c:.1f} s)")
-
-    if "e2e" in sections:
-        print("\n## CPU default end to end: python -m jaxdeconf.run --env bandit --algo bc,dil --seeds 10")
-        print(f"##  (bc and dil side by side, one core each of the {len(cores)} available)")
-        with tempfile.TemporaryDirectory() as out:
-            t0 = time.perf_counter()
-            proc = subprocess.run(
-                [sys.executable, "-m", "jaxdeconf.run", "--seeds", "10", "--out", out, "--quiet"],
-                capture_output=True, text=True, check=False,
-                preexec_fn=lambda: os.sched_setaffinity(0, cores),  # Undo this process's pinning for the CLI.
-            )
-            wall = time.perf_counter() - t0
-            peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
-            print(f"wall {wall:.1f} s, peak memory of one process {peak:.0f} MiB, exit {proc.returncode}")
-            for line in proc.stdout.splitlines():
-                if "compile" in line and "run" in line:
-                    print("  " + line)
 
 
 SECTIONS = ("reference", "seeds", "e2e")
