@@ -86,5 +86,6 @@ if __name__ == "__main__":
     chosen = sys.argv[1:] or list(SECTIONS)
     unknown = [name for name in chosen if name not in SECTIONS]
     if unknown:
-        sys.exit(f"error: unknown bench section {unknown[0]!r}; allowed: {', '.join(SECTIONS)}")
+        print(f"error: unknown bench section {unknown[0]!r}; allowed: {', '.join(SECTIONS)}", file=sys.stderr)
+        sys.exit(2)
     main(chosen)
