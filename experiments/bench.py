@@ -6,7 +6,6 @@ Sections can be chosen: ``make bench SECTIONS="reference seeds e2e"`` (the defau
 
 from __future__ import annotations
 
-import functools
 import resource
 import subprocess
 import sys
@@ -18,7 +17,7 @@ import jax
 import jaxdeconf  # noqa: F401  (XLA CPU flags)
 from jaxdeconf.config import build
 from jaxdeconf.run import available_cores, pin_to_core
-from jaxdeconf.train import build_algorithm, seed_keys
+from jaxdeconf.train import build_algorithm, compiled_chunk, seed_keys
 
 # The authors' PyTorch code on this same 2-core machine (from the issue): seconds per iteration.
 TORCH_S_PER_ITER = {"dil": 17.0, "bc": 165.0}
@@ -30,9 +29,8 @@ def time_iterations(algo_name: str, preset: str, seeds: int, iters: int, overrid
     algo = build_algorithm(config, algo_name)
     states = jax.jit(jax.vmap(algo.init))(seed_keys(config))
     jax.block_until_ready(states)
-    fn = jax.jit(jax.vmap(functools.partial(algo.train_chunk, length=iters)))
     t0 = time.perf_counter()
-    compiled = fn.lower(states).compile()
+    compiled = compiled_chunk(algo, iters).lower(states).compile()
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     jax.block_until_ready(compiled(states))

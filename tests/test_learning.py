@@ -11,7 +11,6 @@ standard deviation 1.6), within 0.011 of the exact conditional policy on expert 
 from __future__ import annotations
 
 import dataclasses
-import json
 
 import jax
 import numpy as np
@@ -20,6 +19,7 @@ from jaxdeconf.envs import make
 
 from jaxdeconf.config import build
 from jaxdeconf.references import reference_curves
+from jaxdeconf.results import load_metrics
 from jaxdeconf.train import train_algorithm
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(3600)]
@@ -37,12 +37,8 @@ def _train(tmp_path, algo):
     config = dataclasses.replace(build("bandit", "cpu", (algo,), SEEDS, {}), seed_start=SEED_START)
     train_algorithm(config, algo, tmp_path / algo, progress=False)
     curves = np.load(tmp_path / algo / "curves.npz")
-    rows = [r for r in _read(tmp_path / algo / "metrics.jsonl") if r["iteration"] == config.train.iterations]
+    rows = [r for r in load_metrics(tmp_path, algo) if r["iteration"] == config.train.iterations]
     return np.array([r["eval_return"] for r in rows]), curves["p_best_online"].mean(0), curves["p_best_expert"].mean(0)
-
-
-def _read(path):
-    return [json.loads(line) for line in path.read_text().splitlines() if line]
 
 
 def test_deconfounded_imitator_reaches_the_interventional_policy(tmp_path, refs):
