@@ -17,8 +17,14 @@ def _bandit() -> Environment:
     return Bandit()
 
 
+def _lunar_lander() -> Environment:
+    from jaxdeconf.envs.lunar_lander import LunarLander
+
+    return LunarLander()
+
+
 #: Environment name -> constructor. Heavy environments (Brax) import their modules lazily here.
-REGISTRY: dict[str, Callable[[], Environment]] = {"bandit": _bandit}
+REGISTRY: dict[str, Callable[[], Environment]] = {"bandit": _bandit, "lunar_lander": _lunar_lander}
 
 
 def make(name: str, **overrides: Any) -> tuple[Environment, Any]:

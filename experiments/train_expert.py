@@ -1,0 +1,124 @@
+"""Train and ship a θ-aware PPO expert: ``python experiments/train_expert.py --env lunar_lander``.
+
+Trains on the expert's view of the confounded env, evaluates the result over 100 episodes of each θ (with and
+without action noise) and writes ``envs/experts/<env>.msgpack`` and ``.json`` (config, command, evaluation). An
+existing expert is kept unless ``--overwrite``; ``--out`` writes elsewhere.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+from jaxdeconf.run import available_cores, pin_to_core
+
+import jax  # noqa: E402 -- after pinning
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from jaxdeconf.envs import make  # noqa: E402
+from jaxdeconf.experts import expert_paths, save_expert  # noqa: E402
+from jaxdeconf.ppo import ExpertNetwork, PPOConfig, train_ppo  # noqa: E402
+
+
+def evaluate(env, params, net, net_params, episodes: int, seed: int, theta: int | None, greedy: bool = False) -> dict:
+    """Mean ± std return, landing and crash rates of the expert over ``episodes`` full episodes."""
+    horizon = env.horizon(params)
+
+    def one(key, net_params):
+        k_reset, k_run = jax.random.split(key)
+        state, obs = env.reset(k_reset, params)
+        if theta is not None:
+            state = state.replace(theta=jnp.asarray(theta, jnp.int32))
+            obs = env._observe(state)
+
+        def body(carry, k):
+            state, obs, ret, alive, length = carry
+            k_act, k_step = jax.random.split(k)
+            logits, _ = net.apply(net_params, obs.expert)
+            action = jnp.argmax(logits) if greedy else jax.random.categorical(k_act, logits)
+            state, res = env.step(k_step, state, action, params)
+            extras = {n: v for n, v in res.extras.items()}
+            return (state, res.obs, ret + res.reward, alive & ~res.done, length + alive), extras
+
+        init = (state, obs, jnp.zeros(()), jnp.ones((), jnp.bool_), jnp.zeros((), jnp.int32))
+        (_, _, ret, _, length), extras = jax.lax.scan(body, init, jax.random.split(k_run, horizon))
+        return ret, length, {n: v.sum() for n, v in extras.items()}
+
+    return jax.jit(jax.vmap(one, in_axes=(0, None)))(jax.random.split(jax.random.key(seed), episodes), net_params)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--env", default="lunar_lander")
+    parser.add_argument("--steps", type=float, default=PPOConfig.total_steps)
+    parser.add_argument("--noise", type=float, default=None, help="action-noise probability while training")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--num-envs", type=int, default=PPOConfig.num_envs)
+    parser.add_argument("--rollout", type=int, default=PPOConfig.rollout)
+    parser.add_argument("--minibatches", type=int, default=PPOConfig.minibatches)
+    parser.add_argument("--entropy", type=float, default=PPOConfig.entropy)
+    parser.add_argument("--out", type=Path, default=None, help="folder for the expert files (default envs/experts)")
+    parser.add_argument("--overwrite", action="store_true")
+    args = parser.parse_args(argv)
+    pin_to_core(available_cores()[0])  # See jaxdeconf.run.pin_to_core.
+    weights, _ = expert_paths(args.env, args.out)
+    if weights.exists() and not args.overwrite:
+        print(f"error: expert {weights} exists; pass --overwrite to replace it", file=sys.stderr)
+        return 2
+    overrides = {} if args.noise is None else {"noise": args.noise}
+    try:
+        env, params = make(args.env, **overrides)
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    config = PPOConfig(total_steps=int(args.steps), num_envs=args.num_envs, rollout=args.rollout,
+                       minibatches=args.minibatches, entropy=args.entropy)
+    start = time.time()
+
+    def log(row: dict) -> None:
+        done = row["iteration"] / config.iterations
+        eta = row["seconds"] / done * (1 - done)
+        print(f"iter {row['iteration']:5d}/{config.iterations}  steps {row['steps']:>9,}  return {row['mean_return']:8.1f}"
+              f"  entropy {row['entropy']:.3f}  {row['seconds']:6.0f}s  eta {eta:5.0f}s", flush=True)
+
+    net_params, history = train_ppo(env, params, config, args.seed, log)
+    train_seconds = time.time() - start
+    net = ExpertNetwork(env.action_space(params).n, config.width, config.depth)
+    evaluation = {}
+    for noise in (0.0, float(params.noise)):
+        eval_params = params.replace(noise=noise)
+        for theta in (0, 1):
+            ret, length, extras = evaluate(env, eval_params, net, net_params, 100, 1000 + theta, theta)
+            row = {"mean_return": float(ret.mean()), "std_return": float(ret.std()),
+                   "mean_length": float(length.mean())}
+            row.update({f"{k}_rate": float(np.mean(np.asarray(v) > 0)) for k, v in extras.items()
+                        if k in ("landed", "crashed")})
+            evaluation[f"noise={noise:g},theta={theta}"] = row
+            print(f"eval noise={noise:g} theta={theta}: return {row['mean_return']:.1f} ± {row['std_return']:.1f}, "
+                  f"length {row['mean_length']:.0f}", flush=True)
+    meta = {
+        "env": args.env,
+        "env_params": {k: v for k, v in dataclasses.asdict(params).items()},
+        "actions": env.action_space(params).n,
+        "obs_size": env.obs_sizes(params).expert,
+        "width": config.width,
+        "depth": config.depth,
+        "ppo": dataclasses.asdict(config),
+        "seed": args.seed,
+        "command": "python experiments/train_expert.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "train_seconds": round(train_seconds, 1),
+        "device": str(jax.devices()[0]),
+        "final_train_return": history[-1]["mean_return"],
+        "evaluation_100_episodes_each": evaluation,
+    }
+    save_expert(args.env, net_params, meta, args.out, overwrite=args.overwrite)
+    print(f"wrote {weights}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
