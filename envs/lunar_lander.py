@@ -8,8 +8,11 @@ shaping reward, fuel costs and the termination rules (hull touches the ground or
 asleep, i.e. moves slower than Box2D's sleep tolerances for 0.5 s: +100).
 
 What is ours (a small rigid-body solver instead of Box2D):
-- The hull and its two legs are one rigid body, the legs fixed at the rest pose measured in Box2D (joint angle ±0.4
-  against its limit). Box2D's legs are separate bodies on spring-motor joints; they flex a little on impact.
+- The hull and its two legs are one rigid body (the legs' 3% of the mass moves with the hull), the legs at the rest
+  pose measured in Box2D (joint angle ±0.4, against the limit). Each leg folds about its joint as Box2D's does: its
+  motor holds at most 40 N·m, so a contact whose torque exceeds that folds the leg (up to the joint's 0.5 rad range)
+  while passing only the motor's torque to the hull; unloaded, the leg swings back at the motor's 0.3 rad/s. A hard
+  landing therefore folds the legs until the hull strikes the ground, which is how gymnasium's lander crashes.
 - Ground contact acts on the eight leg corners: sequential impulses (8 Gauss-Seidel passes), Coulomb friction with
   Box2D's mixed coefficient sqrt(0.2 · 0.1), no restitution, speculative contacts and Baumgarte correction.
 - Contacts are detected at the start of a step, as Box2D's contact listener does: a leg touches when a corner is
@@ -64,6 +67,12 @@ SLOP = 0.005  # b2_linearSlop.
 BAUMGARTE = 0.2
 FRICTION = math.sqrt(0.2 * 0.1)  # Box2D mixes friction as sqrt(f_leg * f_ground).
 SOLVER_ITERATIONS = 8
+# Leg joints: a motor of at most 40 N·m (LEG_SPRING_TORQUE) holds each leg against its rest-side limit; a harder
+# push folds the leg by up to 0.5 rad (the joint's range), and the motor swings it back at 0.3 rad/s.
+LEG_TORQUE = 40.0
+LEG_FOLD_MAX = 0.5
+LEG_RETURN_SPEED = 0.3
+LEG_FOLD_SIGN = np.array([1.0, -1.0])  # legs[0] (right) folds counter-clockwise, legs[1] (left) clockwise.
 
 # Bodies measured in Box2D (LunarLander-v3 after its legs settle; see the module docstring). Hull frame = Box2D body
 # origin of the hull, which is what gymnasium reports as the lander's position.
@@ -123,6 +132,7 @@ class LunarLanderState:
     terrain: jax.Array  # [CHUNKS] smoothed heights at x = 0, 2, ..., 20.
     sleep_time: jax.Array
     legs: jax.Array  # [2] bool, ground contact of legs[0] (right) and legs[1] (left), gymnasium's order.
+    fold: jax.Array  # [2] how far each leg is folded from its rest pose, in [0, LEG_FOLD_MAX] rad.
     shaping: jax.Array  # Previous shaping value.
     theta: jax.Array  # int32: 0 identity, 1 swapped.
     done: jax.Array  # bool: terminated (state frozen from then on).
@@ -192,11 +202,28 @@ def _hull_touches(terrain: jax.Array, pos: jax.Array, angle: jax.Array) -> jax.A
     return vertex_hit | jnp.any(inside)
 
 
-def _solve_contacts(state: LunarLanderState, vel: jax.Array, omega: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """Sequential impulses on the leg corners against the terrain (non-penetration and Coulomb friction)."""
+def leg_corners(fold: jax.Array) -> jax.Array:
+    """The 8 leg corners in the hull frame with the legs folded by ``fold`` about their joints (the hull origin)."""
+    corners = jnp.asarray(LEG_CORNERS, jnp.float32).reshape(2, 4, 2)
+    rots = jax.vmap(_rotation)(jnp.asarray(LEG_FOLD_SIGN, jnp.float32) * fold)
+    return jnp.einsum("lij,lkj->lki", rots, corners).reshape(8, 2)
+
+
+def _solve_contacts(state: LunarLanderState, vel: jax.Array, omega: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Sequential impulses on the leg corners against the terrain (non-penetration and Coulomb friction).
+
+    A leg short of its fold limit transmits at most the motor's torque: the normal impulses on its corners are capped
+    so that their torque about the joint stays within LEG_TORQUE · dt. Returns the velocities and which legs yielded.
+    """
     rot = _rotation(state.angle)
-    arms = (jnp.asarray(LEG_CORNERS - COM, jnp.float32)) @ rot.T  # Corner minus centre of mass, world frame.
+    local = leg_corners(state.fold)
+    arms = (local - jnp.asarray(COM, jnp.float32)) @ rot.T  # Corner minus centre of mass, world frame.
     sep, normal = jax.vmap(lambda r: _terrain_distance(state.terrain, state.com + r))(arms)
+    from_joint = local @ rot.T  # Corner minus joint anchor (the hull origin), world frame.
+    sign = jnp.repeat(jnp.asarray(LEG_FOLD_SIGN, jnp.float32), 4)
+    lever = sign * (from_joint[:, 0] * normal[:, 1] - from_joint[:, 1] * normal[:, 0])  # Folding torque per impulse.
+    capped = jnp.repeat(state.fold < LEG_FOLD_MAX - 1e-6, 4) & (lever > 0)
+    budget = LEG_TORQUE * DT
     tangent = jnp.stack([normal[:, 1], -normal[:, 0]], -1)
     # Speculative contact when apart (approach at most to touching), Baumgarte push-out when penetrating.
     target = jnp.where(sep >= 0.0, -sep / DT, BAUMGARTE * jnp.maximum(-sep - SLOP, 0.0) / DT)
@@ -214,6 +241,10 @@ def _solve_contacts(state: LunarLanderState, vel: jax.Array, omega: jax.Array) -
         for i in range(n_points):
             vn = point_velocity(vel, omega, i) @ normal[i]
             new_n = jnp.maximum(acc_n[i] + mass_n[i] * (target[i] - vn), 0.0)
+            leg = slice(4 * (i // 4), 4 * (i // 4) + 4)
+            others = jnp.sum(acc_n[leg] * jnp.maximum(lever[leg], 0.0)) - acc_n[i] * jnp.maximum(lever[i], 0.0)
+            limit = jnp.maximum(budget - others, 0.0) / jnp.maximum(lever[i], 1e-6)
+            new_n = jnp.where(capped[i], jnp.minimum(new_n, limit), new_n)
             dn = new_n - acc_n[i]
             vel = vel + dn * normal[i] / MASS
             omega = omega + dn * rn[i] / INERTIA
@@ -228,8 +259,24 @@ def _solve_contacts(state: LunarLanderState, vel: jax.Array, omega: jax.Array) -
         return vel, omega, acc_n, acc_t
 
     zeros = jnp.zeros((n_points,), jnp.float32)
-    vel, omega, _, _ = jax.lax.fori_loop(0, SOLVER_ITERATIONS, sweep, (vel, omega, zeros, zeros))
-    return vel, omega
+    vel, omega, acc_n, _ = jax.lax.fori_loop(0, SOLVER_ITERATIONS, sweep, (vel, omega, zeros, zeros))
+    torque = (acc_n * jnp.maximum(lever, 0.0) * capped).reshape(2, 4).sum(-1)
+    return vel, omega, torque >= budget * (1 - 1e-3)
+
+
+def _fold_legs(state: LunarLanderState, yielded: jax.Array) -> jax.Array:
+    """Fold a yielding leg until its lowest corner is back on the ground; otherwise the motor swings it back."""
+    rot = _rotation(state.angle)
+    local = leg_corners(state.fold)
+    world = state.com + (local - jnp.asarray(COM, jnp.float32)) @ rot.T
+    sep = jax.vmap(lambda p: _terrain_distance(state.terrain, p)[0])(world).reshape(2, 4)
+    lowest = jnp.argmin(sep, axis=-1)
+    from_joint = (local @ rot.T).reshape(2, 4, 2)[jnp.arange(2), lowest]
+    rise_rate = jnp.maximum(jnp.abs(from_joint[:, 0]), 0.05)  # d(height)/d(fold) of that corner.
+    depth = jnp.maximum(-sep[jnp.arange(2), lowest], 0.0)
+    folded = jnp.minimum(state.fold + depth / rise_rate, LEG_FOLD_MAX)
+    relaxed = jnp.maximum(state.fold - LEG_RETURN_SPEED * DT, 0.0)
+    return jnp.where(yielded, folded, relaxed)
 
 
 def physics_step(state: LunarLanderState, engine: jax.Array, dispersion: jax.Array) -> tuple[LunarLanderState, dict]:
@@ -261,12 +308,12 @@ def physics_step(state: LunarLanderState, engine: jax.Array, dispersion: jax.Arr
     omega = state.omega + (r[0] * impulse[1] - r[1] * impulse[0]) / INERTIA
     # Contacts, detected on the pose at the start of the step as Box2D's listener sees them.
     rot = _rotation(state.angle)
-    corners = state.com + jnp.asarray(LEG_CORNERS - COM, jnp.float32) @ rot.T
+    corners = state.com + (leg_corners(state.fold) - jnp.asarray(COM, jnp.float32)) @ rot.T
     corner_sep = jax.vmap(lambda p: _terrain_distance(state.terrain, p)[0])(corners)
     legs = jnp.stack([jnp.any(corner_sep[:4] < CONTACT_SKIN), jnp.any(corner_sep[4:] < CONTACT_SKIN)])
     hull = _hull_touches(state.terrain, pos, state.angle)
-    vel, omega = _solve_contacts(state, vel, omega)
-    still = (vel @ vel <= SLEEP_LINEAR**2) & (omega**2 <= SLEEP_ANGULAR**2)
+    vel, omega, yielded = _solve_contacts(state, vel, omega)
+    still = (vel @ vel <= SLEEP_LINEAR**2) & (omega**2 <= SLEEP_ANGULAR**2) & ~jnp.any(yielded)
     new = state.replace(
         com=state.com + DT * vel,
         angle=state.angle + DT * omega,
@@ -275,6 +322,7 @@ def physics_step(state: LunarLanderState, engine: jax.Array, dispersion: jax.Arr
         legs=legs,
         sleep_time=jnp.where(still, state.sleep_time + DT, 0.0),
     )
+    new = new.replace(fold=_fold_legs(new, yielded))
     return new, {"m_power": m_power, "s_power": s_power, "hull": hull}
 
 
@@ -352,6 +400,7 @@ class LunarLander(Environment):
             terrain=terrain_heights(k_terrain),
             sleep_time=jnp.zeros(()),
             legs=jnp.zeros((2,), jnp.bool_),
+            fold=jnp.zeros((2,)),
             shaping=jnp.zeros(()),
             theta=jax.random.bernoulli(k_theta).astype(jnp.int32),
             done=jnp.zeros((), jnp.bool_),

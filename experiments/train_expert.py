@@ -60,6 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--num-envs", type=int, default=PPOConfig.num_envs)
     parser.add_argument("--rollout", type=int, default=PPOConfig.rollout)
     parser.add_argument("--minibatches", type=int, default=PPOConfig.minibatches)
+    parser.add_argument("--width", type=int, default=PPOConfig.width)
     parser.add_argument("--entropy", type=float, default=PPOConfig.entropy)
     parser.add_argument("--out", type=Path, default=None, help="folder for the expert files (default envs/experts)")
     parser.add_argument("--overwrite", action="store_true")
@@ -76,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     config = PPOConfig(total_steps=int(args.steps), num_envs=args.num_envs, rollout=args.rollout,
-                       minibatches=args.minibatches, entropy=args.entropy)
+                       minibatches=args.minibatches, entropy=args.entropy, width=args.width)
     start = time.time()
 
     def log(row: dict) -> None:
@@ -89,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     train_seconds = time.time() - start
     net = ExpertNetwork(env.action_space(params).n, config.width, config.depth)
     evaluation = {}
-    for noise in (0.0, float(params.noise)):
+    for noise in (0.0, float(env.default_params().noise)):
         eval_params = params.replace(noise=noise)
         for theta in (0, 1):
             ret, length, extras = evaluate(env, eval_params, net, net_params, 100, 1000 + theta, theta)
