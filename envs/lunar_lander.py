@@ -39,7 +39,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-
 from jaxdeconf.envs.base import ActionSpace, Environment, Observation, StepResult
 
 # gymnasium's constants (gymnasium/envs/box2d/lunar_lander.py).
@@ -209,7 +208,9 @@ def leg_corners(fold: jax.Array) -> jax.Array:
     return jnp.einsum("lij,lkj->lki", rots, corners).reshape(8, 2)
 
 
-def _solve_contacts(state: LunarLanderState, vel: jax.Array, omega: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+def _solve_contacts(
+    state: LunarLanderState, vel: jax.Array, omega: jax.Array
+) -> tuple[jax.Array, jax.Array, jax.Array]:
     """Sequential impulses on the leg corners against the terrain (non-penetration and Coulomb friction).
 
     A leg short of its fold limit transmits at most the motor's torque: the normal impulses on its corners are capped

@@ -1,7 +1,8 @@
 """``make bench``: seconds per iteration at the reference code's bandit configuration, seed scaling, and the CPU
-default's wall time, compile time and peak memory. Prints a table; numbers are measured on the machine it runs on.
+default's wall time, compile time and peak memory; LunarLander env steps per second against gymnasium's Box2D.
+Prints a table; numbers are measured on the machine it runs on.
 
-Sections can be chosen: ``make bench SECTIONS="reference seeds e2e"`` (the default is all three).
+Sections can be chosen: ``make bench SECTIONS="reference seeds e2e lunar"`` (the default is all four).
 """
 
 from __future__ import annotations
@@ -78,7 +79,59 @@ def main(sections: list[str]) -> None:
                       f"(compile {c:.1f} s)")
 
 
-SECTIONS = ("reference", "seeds", "e2e")
+    if "lunar" in sections:
+        lunar_lander_speed()
+
+
+def lunar_lander_speed() -> None:
+    """Env steps per second of our JAX LunarLander against gymnasium's vectorised Box2D one, random actions."""
+    import os
+
+    os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+    import gymnasium as gym
+    import numpy as np
+
+    from jaxdeconf.envs import make
+
+    print("\n## lunar_lander: env steps per second, uniformly random actions, one core")
+    print("##  ours: jit(scan(vmap(step))) over 500 steps (terminated episodes stay frozen but are still stepped);")
+    print("##  gymnasium: LunarLander-v3 vectorised with make_vec(vectorization_mode='sync'), autoreset")
+    env, params = make("lunar_lander")
+    steps = 500
+
+    def run(key, n):
+        state, _ = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, n), params)
+
+        def body(state, k):
+            k_a, k_s = jax.random.split(k)
+            action = jax.random.randint(k_a, (n,), 0, 4)
+            state, res = jax.vmap(env.step, in_axes=(0, 0, 0, None))(jax.random.split(k_s, n), state, action, params)
+            return state, res.reward
+
+        return jax.lax.scan(body, state, jax.random.split(key, steps))[1].sum()
+
+    for n in (16, 128, 1024):
+        t0 = time.perf_counter()
+        fn = jax.jit(run, static_argnums=1).lower(jax.random.key(0), n).compile()
+        compile_s = time.perf_counter() - t0
+        jax.block_until_ready(fn(jax.random.key(1)))
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(jax.random.key(2)))
+        ours = n * steps / (time.perf_counter() - t0)
+        vec = gym.make_vec("LunarLander-v3", num_envs=n, vectorization_mode="sync")
+        vec.reset(seed=0)
+        rng = np.random.default_rng(0)
+        calls = max(20, 20000 // n)
+        t0 = time.perf_counter()
+        for _ in range(calls):
+            vec.step(rng.integers(0, 4, size=n))
+        theirs = n * calls / (time.perf_counter() - t0)
+        vec.close()
+        print(f"batch {n:5d}: ours {ours:10,.0f} steps/s (compile {compile_s:.1f} s); gymnasium {theirs:9,.0f} steps/s "
+              f"-> {ours / theirs:.1f}x")
+
+
+SECTIONS = ("reference", "seeds", "e2e", "lunar")
 
 if __name__ == "__main__":
     chosen = sys.argv[1:] or list(SECTIONS)

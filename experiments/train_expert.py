@@ -13,15 +13,14 @@ import sys
 import time
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxdeconf.envs import make
+
+from jaxdeconf.experts import expert_paths, save_expert
+from jaxdeconf.ppo import ExpertNetwork, PPOConfig, train_ppo
 from jaxdeconf.run import available_cores, pin_to_core
-
-import jax  # noqa: E402 -- after pinning
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-
-from jaxdeconf.envs import make  # noqa: E402
-from jaxdeconf.experts import expert_paths, save_expert  # noqa: E402
-from jaxdeconf.ppo import ExpertNetwork, PPOConfig, train_ppo  # noqa: E402
 
 
 def evaluate(env, params, net, net_params, episodes: int, seed: int, theta: int | None, greedy: bool = False) -> dict:
@@ -83,7 +82,8 @@ def main(argv: list[str] | None = None) -> int:
     def log(row: dict) -> None:
         done = row["iteration"] / config.iterations
         eta = row["seconds"] / done * (1 - done)
-        print(f"iter {row['iteration']:5d}/{config.iterations}  steps {row['steps']:>9,}  return {row['mean_return']:8.1f}"
+        print(f"iter {row['iteration']:5d}/{config.iterations}  steps {row['steps']:>9,}"
+              f"  return {row['mean_return']:8.1f}"
               f"  entropy {row['entropy']:.3f}  {row['seconds']:6.0f}s  eta {eta:5.0f}s", flush=True)
 
     net_params, history = train_ppo(env, params, config, args.seed, log)

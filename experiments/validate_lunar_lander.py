@@ -17,14 +17,13 @@ import json
 import sys
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxdeconf.envs import make
+from jaxdeconf.envs.lunar_lander import heuristic
+
 from jaxdeconf.run import available_cores, pin_to_core
-
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-
-from jaxdeconf.envs import make  # noqa: E402
-from jaxdeconf.envs.lunar_lander import heuristic  # noqa: E402
 
 HORIZON = 500
 

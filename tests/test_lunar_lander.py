@@ -8,14 +8,14 @@ import os
 
 os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
 
-import math  # noqa: E402
+import math
 
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-from jaxdeconf.envs import make  # noqa: E402
-from jaxdeconf.envs import lunar_lander as ll  # noqa: E402
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jaxdeconf.envs import lunar_lander as ll
+from jaxdeconf.envs import make
 
 N = 40000
 
@@ -181,7 +181,7 @@ def test_heuristic_port_matches_gymnasium():
 
 def _random_rollouts(key, params, n=8, steps=200):
     env, _ = make("lunar_lander")
-    state, obs = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, n), params)
+    state, _ = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, n), params)
 
     def body(state, k):
         k_a, k_s = jax.random.split(k)

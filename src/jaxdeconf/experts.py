@@ -64,6 +64,6 @@ def load_expert(name: str, folder: Path | None = None) -> Expert:
         net = ExpertNetwork(int(meta["actions"]), int(meta["width"]), int(meta["depth"]))
         template = net.init(jax.random.key(0), jnp.zeros((int(meta["obs_size"]),)))
         params = flax.serialization.from_bytes(template, weights.read_bytes())
-    except Exception as err:  # noqa: BLE001 -- any decoding failure means the same thing to the user.
+    except Exception as err:
         raise ValueError(f"expert files {weights} / {info} are corrupt ({type(err).__name__})") from None
     return Expert(net, params, meta)

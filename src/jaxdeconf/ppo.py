@@ -120,7 +120,7 @@ def train_ppo(
         ratio = jnp.exp(log_prob - batch["log_prob"])
         adv = (batch["adv"] - batch["adv"].mean()) / (batch["adv"].std() + 1e-8)
         policy_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config.clip, 1 + config.clip) * adv).mean()
-        # No value clipping (as SB3's default): returns here are in the hundreds, so a clip of 0.2 would freeze the critic.
+        # No value clipping (SB3's default): returns here are in the hundreds; a clip of 0.2 would freeze the critic.
         value_loss = 0.5 * ((value - batch["target"]) ** 2).mean()
         entropy = -(jnp.exp(log_probs) * log_probs).sum(-1).mean()
         total = policy_loss + config.value_coef * value_loss - config.entropy * entropy
@@ -141,7 +141,7 @@ def train_ppo(
             return (adv, t["value"]), adv
 
         _, adv = jax.lax.scan(gae, (jnp.zeros_like(last_value), last_value), traj, reverse=True)
-        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]),
+        flat = jax.tree.map(lambda x: x.reshape((-1, *x.shape[2:])),
                             {"obs": traj["obs"], "action": traj["action"], "log_prob": traj["log_prob"],
                              "value": traj["value"], "adv": adv, "target": adv + traj["value"]})
         n = config.num_envs * config.rollout

@@ -21,7 +21,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--env", default="bandit", help="environment name (default: bandit)")
     p.add_argument("--algo", default="bc,dil", help=f"comma-separated algorithms from {', '.join(cfg.ALGOS)}")
     p.add_argument("--seeds", type=int, default=10, help="number of seeds, trained together in one program")
-    p.add_argument("--preset", default="cpu", help="preset of the environment (bandit: cpu, paper)")
+    p.add_argument("--preset", default="cpu", help="preset of the environment (cpu, paper)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                    help="override a config field, e.g. train.iterations=100, model.gru=256, env.p=0.7")
     p.add_argument("--out", default=None, help="results folder (default: results/<env>-<preset>)")
