@@ -90,7 +90,6 @@ def lunar_lander_speed() -> None:
     os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
     import gymnasium as gym
     import numpy as np
-
     from jaxdeconf.envs import make
 
     print("\n## lunar_lander: env steps per second, uniformly random actions, one core")
