@@ -23,8 +23,11 @@ from jaxdeconf.ppo import ExpertNetwork, PPOConfig, train_ppo
 from jaxdeconf.run import available_cores, pin_to_core
 
 
-def evaluate(env, params, net, net_params, episodes: int, seed: int, theta: int | None, greedy: bool = False) -> dict:
-    """Mean ± std return, landing and crash rates of the expert over ``episodes`` full episodes."""
+def evaluate(env, params, net, net_params, episodes: int, seed: int, theta: int | None, blind: bool = False) -> tuple:
+    """Returns, lengths and summed extras of the expert over ``episodes`` full episodes with θ forced to ``theta``.
+
+    ``blind`` feeds the expert θ = 0 whatever the episode's θ: a controller that ignores the confounder.
+    """
     horizon = env.horizon(params)
 
     def one(key, net_params):
@@ -37,8 +40,9 @@ def evaluate(env, params, net, net_params, episodes: int, seed: int, theta: int 
         def body(carry, k):
             state, obs, ret, alive, length = carry
             k_act, k_step = jax.random.split(k)
-            logits, _ = net.apply(net_params, obs.expert)
-            action = jnp.argmax(logits) if greedy else jax.random.categorical(k_act, logits)
+            view = obs.expert.at[-1].set(0.0) if blind else obs.expert
+            logits, _ = net.apply(net_params, view)
+            action = jax.random.categorical(k_act, logits)
             state, res = env.step(k_step, state, action, params)
             extras = {n: v for n, v in res.extras.items()}
             return (state, res.obs, ret + res.reward, alive & ~res.done, length + alive), extras
@@ -48,6 +52,37 @@ def evaluate(env, params, net, net_params, episodes: int, seed: int, theta: int 
         return ret, length, {n: v.sum() for n, v in extras.items()}
 
     return jax.jit(jax.vmap(one, in_axes=(0, None)))(jax.random.split(jax.random.key(seed), episodes), net_params)
+
+
+def evaluation_table(env, net, net_params, blind: bool) -> dict[str, dict[str, float]]:
+    """100 episodes per θ, without action noise and with the env's default noise; printed and returned."""
+    evaluation = {}
+    params = env.default_params()
+    for noise in (0.0, float(params.noise)):
+        for theta in (0, 1):
+            ret, length, extras = evaluate(env, params.replace(noise=noise), net, net_params, 100, 1000 + theta, theta,
+                                           blind)
+            row = {"mean_return": float(ret.mean()), "std_return": float(ret.std()),
+                   "mean_length": float(length.mean())}
+            row.update({f"{k}_rate": float(np.mean(np.asarray(v) > 0)) for k, v in extras.items()
+                        if k in ("landed", "crashed")})
+            evaluation[f"noise={noise:g},theta={theta}"] = row
+            print(f"eval{' θ-blind' if blind else ''} noise={noise:g} theta={theta}: return "
+                  f"{row['mean_return']:.1f} ± {row['std_return']:.1f}, length {row['mean_length']:.0f}, "
+                  f"landed {row.get('landed_rate', np.nan):.2f}, crashed {row.get('crashed_rate', np.nan):.2f}",
+                  flush=True)
+    return evaluation
+
+
+def evaluate_shipped(name: str) -> int:
+    """Re-evaluate the shipped expert, and the same network fed θ = 0 always (a θ-blind controller)."""
+    from jaxdeconf.experts import load_expert
+
+    env, _ = make(name)
+    expert = load_expert(name)
+    for blind in (False, True):
+        evaluation_table(env, expert.network, expert.params, blind)
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -63,8 +98,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--entropy", type=float, default=PPOConfig.entropy)
     parser.add_argument("--out", type=Path, default=None, help="folder for the expert files (default envs/experts)")
     parser.add_argument("--overwrite", action="store_true")
+    parser.add_argument("--evaluate", action="store_true",
+                        help="only re-evaluate the shipped expert (and a θ-blind copy of it); write nothing")
     args = parser.parse_args(argv)
     pin_to_core(available_cores()[0])  # See jaxdeconf.run.pin_to_core.
+    if args.evaluate:
+        return evaluate_shipped(args.env)
     weights, _ = expert_paths(args.env, args.out)
     if weights.exists() and not args.overwrite:
         print(f"error: expert {weights} exists; pass --overwrite to replace it", file=sys.stderr)
@@ -89,18 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     net_params, history = train_ppo(env, params, config, args.seed, log)
     train_seconds = time.time() - start
     net = ExpertNetwork(env.action_space(params).n, config.width, config.depth)
-    evaluation = {}
-    for noise in (0.0, float(env.default_params().noise)):
-        eval_params = params.replace(noise=noise)
-        for theta in (0, 1):
-            ret, length, extras = evaluate(env, eval_params, net, net_params, 100, 1000 + theta, theta)
-            row = {"mean_return": float(ret.mean()), "std_return": float(ret.std()),
-                   "mean_length": float(length.mean())}
-            row.update({f"{k}_rate": float(np.mean(np.asarray(v) > 0)) for k, v in extras.items()
-                        if k in ("landed", "crashed")})
-            evaluation[f"noise={noise:g},theta={theta}"] = row
-            print(f"eval noise={noise:g} theta={theta}: return {row['mean_return']:.1f} ± {row['std_return']:.1f}, "
-                  f"length {row['mean_length']:.0f}", flush=True)
+    evaluation = evaluation_table(env, net, net_params, blind=False)
     meta = {
         "env": args.env,
         "env_params": {k: v for k, v in dataclasses.asdict(params).items()},
