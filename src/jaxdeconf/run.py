@@ -9,6 +9,7 @@ import pathlib
 import shutil
 import subprocess
 import sys
+import time
 from typing import Any
 
 from jaxdeconf import config as cfg
@@ -158,15 +159,23 @@ def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0) -
         else:
             pending.append(algo)
     jobs = jobs or len(cores)
-    codes = {}
-    for start in range(0, len(pending), jobs):
-        group = pending[start:start + jobs]
-        procs = []
-        for i, algo in enumerate(group):
-            cmd = [sys.executable, "-m", "jaxdeconf.run", "--worker", algo, "--out", str(folder),
-                   "--core", str(cores[i % len(cores)]), "--position", str(i)]
-            procs.append((algo, subprocess.Popen([*cmd, "--quiet"] if quiet else cmd)))
-        codes.update({algo: proc.wait() for algo, proc in procs})
+    codes: dict[str, int] = {}
+    running: dict[int, tuple[str, subprocess.Popen]] = {}  # Slot -> (algorithm, worker process).
+    queue = list(pending)
+    while queue or running:
+        # Fill every free slot (a slot is a core and a progress-bar row), then wait for any worker to finish.
+        for slot in range(jobs):
+            if slot not in running and queue:
+                algo = queue.pop(0)
+                cmd = [sys.executable, "-m", "jaxdeconf.run", "--worker", algo, "--out", str(folder),
+                       "--core", str(cores[slot % len(cores)]), "--position", str(slot)]
+                running[slot] = (algo, subprocess.Popen([*cmd, "--quiet"] if quiet else cmd))
+        finished = [slot for slot, (_, proc) in running.items() if proc.poll() is not None]
+        if not finished:
+            time.sleep(0.5)
+        for slot in finished:
+            algo, proc = running.pop(slot)
+            codes[algo] = proc.returncode
     if 2 in codes.values():
         return 2  # A worker already printed its one-line error.
     failed = [f"{algo} (exit {code})" for algo, code in codes.items() if code != 0]
