@@ -81,14 +81,16 @@ def _batch(T=7, B=3, seed=1):
     return obs, jax.nn.one_hot(action, 5), valid
 
 
-@pytest.mark.parametrize("steps", [1, 3])
-def test_elbo_scan_matches_plain_loop(steps):
+@pytest.mark.parametrize(("steps", "likelihood"), [(1, "bernoulli"), (3, "bernoulli"), (3, "gaussian")])
+def test_elbo_scan_matches_plain_loop(steps, likelihood):
     encoder, decoder, params = _tiny_models()
     obs, feats, valid = _batch()
     T, B = valid.shape
     key = jax.random.key(3)
+    # The Gaussian case scores standardised one-step changes (the MDPs' decoder target).
+    scale = jnp.linspace(0.1, 2.0, obs.shape[-1]) if likelihood == "gaussian" else None
     loss, metrics = losses.elbo_loss(params, obs, feats, valid, key, encoder=encoder, decoder=decoder, beta=0.3,
-                                     steps=steps, likelihood="bernoulli")
+                                     steps=steps, likelihood=likelihood, delta_scale=scale)
 
     # The same objective written as plain Python loops over t and k with the per-step module methods.
     eps = jax.random.normal(key, (T, B, 3))
@@ -103,8 +105,12 @@ def test_elbo_scan_matches_plain_loop(steps):
         term = 0.3 * losses.kl_diag_gaussian(mean, logvar, prev_mean, prev_logvar)
         for k in range(steps):
             if t + k < T:
-                logits = decoder.apply(params["decoder"], z, obs[t + k], feats[t + k])
-                term = term + losses.bernoulli_nll(obs[t + k + 1], logits) * valid[t + k]
+                out = decoder.apply(params["decoder"], z, obs[t + k], feats[t + k])
+                if likelihood == "gaussian":
+                    nll = losses.gaussian_nll((obs[t + k + 1] - obs[t + k]) / scale, out)
+                else:
+                    nll = losses.bernoulli_nll(obs[t + k + 1], out)
+                term = term + nll * valid[t + k]
         total += jnp.sum(term * valid[t])
         count += jnp.sum(valid[t])
         prev_mean, prev_logvar = mean, logvar

@@ -64,6 +64,20 @@ def apply_gradients(learner: Learner, grads: Any, tx: optax.GradientTransformati
     return Learner(params=optax.apply_updates(learner.params, updates), opt_state=opt_state)
 
 
+def observation_delta_scale(env: Environment, env_params: Any, episodes: int = 64) -> jax.Array:
+    """Per-dimension standard deviation of the imitator's one-step observation changes on expert episodes (fixed
+    key, so every seed and run uses the same scale), floored at 1e-3."""
+    traj, _ = jax.jit(lambda k: rollout(env, env_params, ExpertActor(env, env_params), None, k, episodes))(
+        jax.random.key(0))
+    obs = traj.obs.imitator
+    delta = obs[1:] - obs[:-1]
+    mask = traj.valid[..., None].astype(jnp.float32)
+    count = jnp.maximum(mask.sum((0, 1)), 1.0)
+    mean = (delta * mask).sum((0, 1)) / count
+    var = (((delta - mean) ** 2) * mask).sum((0, 1)) / count
+    return jax.device_get(jnp.maximum(jnp.sqrt(var), 1e-3))
+
+
 @dataclasses.dataclass(frozen=True)
 class Algorithm:
     """What all algorithms share: expert data collection, the policy's BC updates, evaluation and the chunk loop."""
@@ -246,7 +260,15 @@ class BehaviourCloning(Algorithm):
 @dataclasses.dataclass(frozen=True)
 class Deconfounded(Algorithm):
     """Algorithm 1: an inference model trained by the sequential ELBO on the imitator's own episodes, and a
-    latent-conditional policy cloned on expert episodes with θ-hat = the posterior mean at the current step."""
+    latent-conditional policy cloned on expert episodes with θ-hat = the posterior mean at the current step.
+
+    For Gaussian observation likelihoods the decoder predicts standardised one-step changes of the observation; the
+    per-dimension scale is fixed once from expert data (``delta_scale``), as the paper normalises from expert data.
+    """
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "delta_scale", observation_delta_scale(self.env, self.env_params)
+                           if self.env.obs_likelihood == "gaussian" else None)
 
     @property
     def networks(self) -> tuple[Encoder, Decoder, LatentPolicy]:
@@ -309,6 +331,7 @@ class Deconfounded(Algorithm):
             beta=t.beta,
             steps=t.prediction_steps,
             likelihood=self.env.obs_likelihood,
+            delta_scale=self.delta_scale,
         )
         grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
 

@@ -102,11 +102,14 @@ def prediction_nll(
     valid: jax.Array,
     steps: int,
     likelihood: str,
+    delta_scale: jax.Array | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """K-step teacher-forced prediction NLL summed over k, and its mask count, per step [T, B].
 
     From z_t the decoder predicts s_{t+k+1} given the true s_{t+k} and a_{t+k}, for k < K and t + k < T with step
-    t + k valid. obs is [T+1, B, d]; z, action_feats and valid are [T, ...].
+    t + k valid. obs is [T+1, B, d]; z, action_feats and valid are [T, ...]. With ``delta_scale`` [d] (Gaussian
+    likelihood only) the target is the standardised change (s_{t+k+1} - s_{t+k}) / delta_scale, so that small but
+    informative changes (an engine's kick) are not drowned by a unit variance.
     """
     T = valid.shape[0]
     total = jnp.zeros(valid.shape, jnp.float32)
@@ -117,7 +120,8 @@ def prediction_nll(
         act = shift_ahead(action_feats, k)
         mask = shift_ahead(valid.astype(jnp.float32), k)
         out = decoder.apply(params, z, cur, act)
-        total = total + obs_nll(likelihood, nxt, out) * mask
+        target = nxt if delta_scale is None else (nxt - cur) / delta_scale
+        total = total + obs_nll(likelihood, target, out) * mask
         count = count + mask
     return total, count
 
@@ -134,8 +138,9 @@ def elbo_loss(
     beta: float,
     steps: int,
     likelihood: str,
+    delta_scale: jax.Array | None = None,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """Negative sequential ELBO (eq. 11) per valid step, on exploration data.
+    """Negative sequential ELBO (eq. 11) per valid step, on exploration data (``delta_scale``: see prediction_nll).
 
     params: {"encoder": ..., "decoder": ...}; obs [T+1, B, d] (imitator view); action_feats [T, B, A]; valid [T, B].
     At step t the posterior q_t = q_phi(. | s_{0:t}, a_{0:t-1}) is sampled by reparameterisation; its prior is q_{t-1}
@@ -144,7 +149,7 @@ def elbo_loss(
     T = valid.shape[0]
     mean, logvar = encoder_scan(encoder, params["encoder"], obs[:T], prev_actions(action_feats))
     z = mean + jnp.exp(0.5 * logvar) * jax.random.normal(key, mean.shape)
-    nll, _ = prediction_nll(decoder, params["decoder"], z, obs, action_feats, valid, steps, likelihood)
+    nll, _ = prediction_nll(decoder, params["decoder"], z, obs, action_feats, valid, steps, likelihood, delta_scale)
     kl = sequential_kl(mean, logvar)
     loss = masked_mean(nll + beta * kl, valid)
     metrics = {"elbo_nll": masked_mean(nll, valid), "elbo_kl": masked_mean(kl, valid)}
