@@ -56,10 +56,6 @@ class Bandit(Environment):
         if int(params.horizon) < 1:
             raise ValueError(f"bandit horizon={params.horizon} is not allowed: need a positive integer")
 
-    def horizon(self, params: BanditParams) -> int:
-        """Episode length."""
-        return int(params.horizon)
-
     def action_space(self, params: BanditParams) -> ActionSpace:
         """One action per arm."""
         return ActionSpace("discrete", int(params.arms))

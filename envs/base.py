@@ -71,8 +71,8 @@ class Environment:
         del params  # Unused.
 
     def horizon(self, params: Any) -> int:
-        """Fixed episode length (a static Python int)."""
-        raise NotImplementedError
+        """Fixed episode length (a static Python int): every env's params carry it as the static field ``horizon``."""
+        return int(params.horizon)
 
     def action_space(self, params: Any) -> ActionSpace:
         """The action space."""

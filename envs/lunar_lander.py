@@ -363,10 +363,6 @@ class LunarLander(Environment):
         if int(params.horizon) < 1:
             raise ValueError(f"lunar_lander horizon={params.horizon} is not allowed: need a positive integer")
 
-    def horizon(self, params: LunarLanderParams) -> int:
-        """Episode length."""
-        return int(params.horizon)
-
     def action_space(self, params: LunarLanderParams) -> ActionSpace:
         """Nothing, left engine, main engine, right engine."""
         del params  # Unused.

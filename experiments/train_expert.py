@@ -23,45 +23,46 @@ from jaxdeconf.ppo import ExpertNetwork, PPOConfig, train_ppo
 from jaxdeconf.run import available_cores, pin_to_core
 
 
-def evaluate(env, params, net, net_params, episodes: int, seed: int, theta: int | None, blind: bool = False) -> tuple:
-    """Returns, lengths and summed extras of the expert over ``episodes`` full episodes with θ forced to ``theta``.
+def make_evaluator(env, net, episodes: int = 100):
+    """One compiled program: ``fn(key, net_params, env_params, theta, blind)`` runs ``episodes`` full episodes with θ
+    forced to ``theta`` and returns their returns, lengths and summed extras.
 
-    ``blind`` feeds the expert θ = 0 whatever the episode's θ: a controller that ignores the confounder.
+    ``blind`` feeds the expert θ = 0 whatever the episode's θ: a controller that ignores the confounder. θ, blind and
+    the env params (noise) are traced, so every row of the evaluation tables reuses the same compilation.
     """
-    horizon = env.horizon(params)
+    horizon = env.horizon(env.default_params())
 
-    def one(key, net_params):
+    def one(key, net_params, env_params, theta, blind):
         k_reset, k_run = jax.random.split(key)
-        state, obs = env.reset(k_reset, params)
-        if theta is not None:
-            state = state.replace(theta=jnp.asarray(theta, jnp.int32))
-            obs = env._observe(state)
+        state, _ = env.reset(k_reset, env_params)
+        state = state.replace(theta=jnp.asarray(theta, jnp.int32))
+        obs = env._observe(state)
 
         def body(carry, k):
             state, obs, ret, alive, length = carry
             k_act, k_step = jax.random.split(k)
-            view = obs.expert.at[-1].set(0.0) if blind else obs.expert
+            view = jnp.where(blind, obs.expert.at[-1].set(0.0), obs.expert)
             logits, _ = net.apply(net_params, view)
-            action = jax.random.categorical(k_act, logits)
-            state, res = env.step(k_step, state, action, params)
-            extras = {n: v for n, v in res.extras.items()}
-            return (state, res.obs, ret + res.reward, alive & ~res.done, length + alive), extras
+            state, res = env.step(k_step, state, jax.random.categorical(k_act, logits), env_params)
+            return (state, res.obs, ret + res.reward, alive & ~res.done, length + alive), res.extras
 
         init = (state, obs, jnp.zeros(()), jnp.ones((), jnp.bool_), jnp.zeros((), jnp.int32))
         (_, _, ret, _, length), extras = jax.lax.scan(body, init, jax.random.split(k_run, horizon))
         return ret, length, {n: v.sum() for n, v in extras.items()}
 
-    return jax.jit(jax.vmap(one, in_axes=(0, None)))(jax.random.split(jax.random.key(seed), episodes), net_params)
+    batched = jax.jit(jax.vmap(one, in_axes=(0, None, None, None, None)))
+    return lambda key, net_params, env_params, theta, blind: batched(
+        jax.random.split(key, episodes), net_params, env_params, theta, blind)
 
 
-def evaluation_table(env, net, net_params, blind: bool) -> dict[str, dict[str, float]]:
+def evaluation_table(env, evaluator, net_params, blind: bool) -> dict[str, dict[str, float]]:
     """100 episodes per θ, without action noise and with the env's default noise; printed and returned."""
     evaluation = {}
     params = env.default_params()
     for noise in (0.0, float(params.noise)):
         for theta in (0, 1):
-            ret, length, extras = evaluate(env, params.replace(noise=noise), net, net_params, 100, 1000 + theta, theta,
-                                           blind)
+            ret, length, extras = evaluator(jax.random.key(1000 + theta), net_params, params.replace(noise=noise),
+                                            theta, blind)
             row = {"mean_return": float(ret.mean()), "std_return": float(ret.std()),
                    "mean_length": float(length.mean())}
             row.update({f"{k}_rate": float(np.mean(np.asarray(v) > 0)) for k, v in extras.items()
@@ -80,8 +81,9 @@ def evaluate_shipped(name: str) -> int:
 
     env, _ = make(name)
     expert = load_expert(name)
+    evaluator = make_evaluator(env, expert.network)
     for blind in (False, True):
-        evaluation_table(env, expert.network, expert.params, blind)
+        evaluation_table(env, evaluator, expert.params, blind)
     return 0
 
 
@@ -128,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     net_params, history = train_ppo(env, params, config, args.seed, log)
     train_seconds = time.time() - start
     net = ExpertNetwork(env.action_space(params).n, config.width, config.depth)
-    evaluation = evaluation_table(env, net, net_params, blind=False)
+    evaluation = evaluation_table(env, make_evaluator(env, net), net_params, blind=False)
     meta = {
         "env": args.env,
         "env_params": {k: v for k, v in dataclasses.asdict(params).items()},

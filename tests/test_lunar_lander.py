@@ -250,23 +250,16 @@ def test_expert_files_round_trip(tmp_path):
 
 
 def test_shipped_expert_lands_and_knows_theta():
+    from jaxdeconf.actors import ExpertActor
+    from jaxdeconf.data import rollout
+
     env, params = make("lunar_lander", noise=0.0)
     meta = env.expert.meta
     evaluation = meta["evaluation_100_episodes_each"]
     assert np.mean([evaluation[f"noise=0,theta={t}"]["mean_return"] for t in (0, 1)]) >= 200
     # Re-measure on 64 fresh episodes (both θ): the shipped parameters reproduce a landing expert.
-    def episode(key):
-        state, obs = env.reset(key, params)
-
-        def body(carry, k):
-            state, obs, ret = carry
-            k_a, k_s = jax.random.split(k)
-            state, res = env.step(k_s, state, env.expert_action(k_a, obs, params), params)
-            return (state, res.obs, ret + res.reward), None
-
-        return jax.lax.scan(body, (state, obs, jnp.zeros(())), jax.random.split(key, 500))[0][2]
-
-    returns = np.asarray(jax.jit(jax.vmap(episode))(jax.random.split(jax.random.key(13), 64)))
+    traj, _ = jax.jit(lambda k: rollout(env, params, ExpertActor(env, params), None, k, 64))(jax.random.key(13))
+    returns = np.asarray(traj.reward.sum(0))
     assert returns.mean() >= 150  # 100-episode evaluations gave >= 200; 64 episodes have a standard error of ~17.
     # Swapping θ in the expert's view changes its choice between the swapped engines.
     _, obs = env.reset(jax.random.key(14), params)

@@ -144,26 +144,13 @@ def _worker(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0) -> int:
-    """Train every algorithm not yet finished (side by side, one core each), then write references, summary and
-    figures."""
-    from jaxdeconf import results
-
-    cores = available_cores()
-    pin_to_core(cores[0])  # The exact references below run here, in this process.
-    refs = _references(config, folder)
-    pending = []
-    for algo in config.algos:
-        if (folder / algo / "DONE").exists():
-            print(f"[{algo}] already finished in {folder}; kept as is (use --overwrite to retrain)")
-        else:
-            pending.append(algo)
-    jobs = jobs or len(cores)
+def _train_workers(folder: pathlib.Path, queue: list[str], cores: list[int], jobs: int, quiet: bool) -> dict[str, int]:
+    """Train the queued algorithms in worker processes, ``jobs`` at a time, each pinned to its slot's core; a freed
+    slot takes the next algorithm at once. Returns each algorithm's exit code."""
     codes: dict[str, int] = {}
-    running: dict[int, tuple[str, subprocess.Popen]] = {}  # Slot -> (algorithm, worker process).
-    queue = list(pending)
+    running: dict[int, tuple[str, subprocess.Popen]] = {}  # Slot (a core and a progress-bar row) -> worker.
+    queue = list(queue)
     while queue or running:
-        # Fill every free slot (a slot is a core and a progress-bar row), then wait for any worker to finish.
         for slot in range(jobs):
             if slot not in running and queue:
                 algo = queue.pop(0)
@@ -176,6 +163,24 @@ def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0) -
         for slot in finished:
             algo, proc = running.pop(slot)
             codes[algo] = proc.returncode
+    return codes
+
+
+def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0) -> int:
+    """Train every algorithm not yet finished (side by side, one core each), then write references, summary and
+    figures."""
+    from jaxdeconf import results
+
+    cores = available_cores()
+    pin_to_core(cores[0])  # The exact references below run here, in this process.
+    refs = _references(config, folder)
+    queue = []
+    for algo in config.algos:
+        if (folder / algo / "DONE").exists():
+            print(f"[{algo}] already finished in {folder}; kept as is (use --overwrite to retrain)")
+        else:
+            queue.append(algo)
+    codes = _train_workers(folder, queue, cores, jobs or len(cores), quiet)
     if 2 in codes.values():
         return 2  # A worker already printed its one-line error.
     failed = [f"{algo} (exit {code})" for algo, code in codes.items() if code != 0]
