@@ -23,8 +23,25 @@ def _lunar_lander() -> Environment:
     return LunarLander()
 
 
+def _half_cheetah() -> Environment:
+    from jaxdeconf.envs.locomotion import HalfCheetah
+
+    return HalfCheetah()
+
+
+def _ant_goal() -> Environment:
+    from jaxdeconf.envs.locomotion import AntGoal
+
+    return AntGoal()
+
+
 #: Environment name -> constructor. Heavy environments (Brax) import their modules lazily here.
-REGISTRY: dict[str, Callable[[], Environment]] = {"bandit": _bandit, "lunar_lander": _lunar_lander}
+REGISTRY: dict[str, Callable[[], Environment]] = {
+    "bandit": _bandit,
+    "lunar_lander": _lunar_lander,
+    "half_cheetah": _half_cheetah,
+    "ant_goal": _ant_goal,
+}
 
 
 def make(name: str, **overrides: Any) -> tuple[Environment, Any]:

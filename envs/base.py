@@ -59,6 +59,8 @@ class Environment:
     name: ClassVar[str] = ""
     #: How the decoder should score the imitator's observation: "gaussian" (unit variance) or "bernoulli".
     obs_likelihood: ClassVar[str] = "gaussian"
+    #: Whether learners see the imitator's and oracle's views standardised from expert data (``NormalizedViews``).
+    normalize_views: ClassVar[bool] = False
     #: Names of the per-step extras ``step`` reports (summed per episode in evaluation).
     extras_names: ClassVar[tuple[str, ...]] = ()
 
@@ -103,3 +105,59 @@ class Environment:
         """The action a θ-aware agent prefers in ``state``, or -1 where no single one exists."""
         del state, params  # Unused.
         return jnp.asarray(-1, jnp.int32)
+
+
+class NormalizedViews(Environment):
+    """``env`` with the imitator's and the oracle's views standardised by fixed per-dimension statistics.
+
+    The statistics are fitted once from expert episodes (``jaxdeconf.algos.fit_view_normalizer``), as the paper
+    normalises observations from expert data, so every learner's inputs and the decoder's targets are on unit scale.
+    The expert's view stays raw: the expert was trained on it.
+    """
+
+    def __init__(self, env: Environment, stats: dict[str, tuple[Any, Any]]):
+        self.env = env
+        self.stats = stats  # View name -> (mean, std), numpy arrays baked into compiled programs as constants.
+        self.name = env.name
+        self.obs_likelihood = env.obs_likelihood
+        self.extras_names = env.extras_names
+
+    def __getattr__(self, attr: str) -> Any:
+        return getattr(self.env, attr)
+
+    def normalize(self, obs: Observation) -> Observation:
+        """Standardise the imitator's and the oracle's views."""
+        views = {name: (getattr(obs, name) - mean) / std for name, (mean, std) in self.stats.items()}
+        return obs.replace(**views)
+
+    def default_params(self) -> Any:
+        return self.env.default_params()
+
+    def validate(self, params: Any) -> None:
+        self.env.validate(params)
+
+    def horizon(self, params: Any) -> int:
+        return self.env.horizon(params)
+
+    def action_space(self, params: Any) -> ActionSpace:
+        return self.env.action_space(params)
+
+    def obs_sizes(self, params: Any) -> Observation:
+        return self.env.obs_sizes(params)
+
+    def reset(self, key: jax.Array, params: Any) -> tuple[Any, Observation]:
+        state, obs = self.env.reset(key, params)
+        return state, self.normalize(obs)
+
+    def step(self, key: jax.Array, state: Any, action: jax.Array, params: Any) -> tuple[Any, StepResult]:
+        state, result = self.env.step(key, state, action, params)
+        return state, result.replace(obs=self.normalize(result.obs))
+
+    def expert_action(self, key: jax.Array, obs: Observation, params: Any) -> jax.Array:
+        return self.env.expert_action(key, obs, params)
+
+    def expert_probs(self, obs: Observation, params: Any) -> jax.Array | None:
+        return self.env.expert_probs(obs, params)
+
+    def best_action(self, state: Any, params: Any) -> jax.Array:
+        return self.env.best_action(state, params)

@@ -1,8 +1,9 @@
 """``make bench``: seconds per iteration at the reference code's bandit configuration, seed scaling, and the CPU
-default's wall time, compile time and peak memory; LunarLander env steps per second against gymnasium's Box2D.
-Prints a table; numbers are measured on the machine it runs on.
+default's wall time, compile time and peak memory; LunarLander env steps per second against gymnasium's Box2D; the
+Brax envs' steps per second and the confounding layer's overhead. Prints a table; numbers are measured on the machine
+it runs on.
 
-Sections can be chosen: ``make bench SECTIONS="reference seeds e2e lunar"`` (the default is all four).
+Sections can be chosen: ``make bench SECTIONS="reference seeds e2e lunar brax"`` (the default is all five).
 """
 
 from __future__ import annotations
@@ -81,6 +82,8 @@ def main(sections: list[str]) -> None:
 
     if "lunar" in sections:
         lunar_lander_speed()
+    if "brax" in sections:
+        brax_speed()
 
 
 def lunar_lander_speed() -> None:
@@ -130,9 +133,78 @@ def lunar_lander_speed() -> None:
               f"-> {ours / theirs:.1f}x")
 
 
-SECTIONS = ("reference", "seeds", "e2e", "lunar")
+def brax_speed() -> None:
+    """half_cheetah and ant_goal: env steps/s at batch 16, 128, 1024, compile time, and the confounding layer's
+    overhead over the raw Brax step; each measurement in its own process with a time limit (XLA on this CPU was seen
+    to hang stepping MJX at batch 1024)."""
+    print("\n## Brax/MJX envs: env steps per second, uniformly random actions in [-1, 1], one core, 100 steps")
+    print("##  ours = the confounded env's step (θ, cue, reward, three views); raw = the same Brax env's own step")
+    for name in ("half_cheetah", "ant_goal"):
+        for n in (16, 128, 1024):
+            try:
+                proc = subprocess.run([sys.executable, __file__, "_brax_one", name, str(n)], capture_output=True,
+                                      text=True, timeout=900, check=False)
+                lines = [line for line in proc.stdout.splitlines() if line.startswith(name)]
+                print(lines[-1] if lines else f"{name} batch {n}: failed (exit {proc.returncode}) "
+                      f"{proc.stderr.strip().splitlines()[-1:]}", flush=True)
+            except subprocess.TimeoutExpired:
+                print(f"{name} batch {n:5d}: no result within 900 s (XLA hang at this batch on this CPU)", flush=True)
+
+
+def _brax_one(name: str, n: int) -> None:
+    """One row of ``brax_speed``: compile and time ours and the raw Brax step at batch ``n``."""
+    from jaxdeconf.envs import make
+
+    pin_to_core(available_cores()[0])
+    env, params = make(name)
+    raw = env.brax_env(params)
+    size, steps = env.action_space(params).n, 100
+
+    def ours(key):
+        state, _ = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, n), params)
+
+        def body(state, k):
+            k_a, k_s = jax.random.split(k)
+            action = jax.random.uniform(k_a, (n, size), minval=-1.0, maxval=1.0)
+            state, res = jax.vmap(env.step, in_axes=(0, 0, 0, None))(jax.random.split(k_s, n), state, action, params)
+            return state, res.reward
+
+        return jax.lax.scan(body, state, jax.random.split(key, steps))[1].sum()
+
+    def brax_only(key):
+        state = jax.vmap(raw.reset)(jax.random.split(key, n))
+
+        def body(state, k):
+            k_a, _ = jax.random.split(k)
+            action = jax.random.uniform(k_a, (n, size), minval=-1.0, maxval=1.0)
+            state = jax.vmap(raw.step)(state, action)
+            return state, state.reward
+
+        return jax.lax.scan(body, state, jax.random.split(key, steps))[1].sum()
+
+    rates, compiles = {}, {}
+    for label, fn in (("ours", ours), ("raw", brax_only)):
+        t0 = time.perf_counter()
+        compiled = jax.jit(fn).lower(jax.random.key(0)).compile()
+        compiles[label] = time.perf_counter() - t0
+        jax.block_until_ready(compiled(jax.random.key(1)))
+        best = float("inf")
+        for rep in range(3):
+            t0 = time.perf_counter()
+            jax.block_until_ready(compiled(jax.random.key(2 + rep)))
+            best = min(best, time.perf_counter() - t0)
+        rates[label] = n * steps / best
+    print(f"{name} batch {n:5d}: ours {rates['ours']:9,.0f} steps/s (compile {compiles['ours']:.0f} s); raw Brax "
+          f"{rates['raw']:9,.0f} steps/s (compile {compiles['raw']:.0f} s); confounding overhead "
+          f"{100 * (rates['raw'] / rates['ours'] - 1):+.1f}%", flush=True)
+
+
+SECTIONS = ("reference", "seeds", "e2e", "lunar", "brax")
 
 if __name__ == "__main__":
+    if sys.argv[1:2] == ["_brax_one"]:
+        _brax_one(sys.argv[2], int(sys.argv[3]))
+        sys.exit(0)
     chosen = sys.argv[1:] or list(SECTIONS)
     unknown = [name for name in chosen if name not in SECTIONS]
     if unknown:

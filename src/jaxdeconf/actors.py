@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxdeconf.envs.base import Environment, Observation
-from jaxdeconf.models import Encoder, LatentPolicy, RecurrentPolicy
+from jaxdeconf.models import LOG_STD_MIN, Encoder, LatentPolicy, RecurrentPolicy
 
 
 @dataclasses.dataclass(frozen=True)
@@ -24,9 +24,13 @@ class ExpertActor:
         return jnp.zeros((batch, 0), jnp.float32)
 
     def __call__(self, params: Any, carry: jax.Array, obs: Observation, prev_action: jax.Array):
-        """Expert logits (log-probabilities)."""
+        """Expert logits (log-probabilities); for box actions a Gaussian head centred on the expert's deterministic
+        action with the smallest standard deviation a head can express (exp(LOG_STD_MIN) = 0.0067)."""
         del params, prev_action  # Unused.
-        return carry, jnp.log(self.env.expert_probs(obs, self.env_params))
+        if self.env.action_space(self.env_params).discrete:
+            return carry, jnp.log(self.env.expert_probs(obs, self.env_params))
+        mean = self.env.expert_action(jax.random.key(0), obs, self.env_params)
+        return carry, jnp.concatenate([mean, jnp.full_like(mean, LOG_STD_MIN)], axis=-1)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -12,6 +12,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from flax import struct
 
@@ -29,7 +30,7 @@ from jaxdeconf.data import (
     replay,
     rollout,
 )
-from jaxdeconf.envs.base import Environment
+from jaxdeconf.envs.base import Environment, NormalizedViews
 from jaxdeconf.models import Decoder, Encoder, LatentPolicy, RecurrentPolicy, action_features, head_size
 
 
@@ -76,6 +77,23 @@ def observation_delta_scale(env: Environment, env_params: Any, episodes: int = 6
     mean = (delta * mask).sum((0, 1)) / count
     var = (((delta - mean) ** 2) * mask).sum((0, 1)) / count
     return jax.device_get(jnp.maximum(jnp.sqrt(var), 1e-3))
+
+
+def fit_view_normalizer(env: Environment, env_params: Any, episodes: int = 64) -> NormalizedViews:
+    """``env`` with its imitator and oracle views standardised by the per-dimension mean and standard deviation
+    (floored at 1e-3) over ``episodes`` expert episodes drawn with a fixed key, identical for every seed and run."""
+    traj, _ = jax.jit(lambda k: rollout(env, env_params, ExpertActor(env, env_params), None, k, episodes))(
+        jax.random.key(1))
+    mask = traj.valid.astype(jnp.float32)[..., None]
+    mask = jnp.concatenate([jnp.ones_like(mask[:1]), mask])  # obs has T + 1 steps; the first is always real.
+    stats = {}
+    for view in ("imitator", "oracle"):
+        obs = getattr(traj.obs, view)
+        count = mask.sum((0, 1))
+        mean = (obs * mask).sum((0, 1)) / count
+        std = jnp.sqrt((((obs - mean) ** 2) * mask).sum((0, 1)) / count)
+        stats[view] = (np.asarray(mean), np.asarray(jnp.maximum(std, 1e-3)))
+    return NormalizedViews(env, stats)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -371,7 +389,9 @@ class Deconfounded(Algorithm):
 
 
 def make_algorithm(name: str, env: Environment, env_params: Any, config: Config) -> Algorithm:
-    """Algorithm by name: bc, oracle or dil."""
+    """Algorithm by name: bc, oracle or dil; envs that ask for it get their learner views standardised first."""
+    if env.normalize_views and not isinstance(env, NormalizedViews):
+        env = fit_view_normalizer(env, env_params)
     if name == "bc":
         return BehaviourCloning(env, env_params, config, view="imitator")
     if name == "oracle":

@@ -54,13 +54,18 @@ def save_expert(name: str, params: Any, meta: dict[str, Any], folder: Path | Non
     return weights, info
 
 
-def load_expert(name: str, folder: Path | None = None) -> Expert:
-    """Load env ``name``'s expert; a missing or corrupt file is a one-line ValueError."""
+def load_expert(name: str, folder: Path | None = None) -> Any:
+    """Load env ``name``'s expert (an ``Expert``, or a ``brax_experts.PolicyExpert`` for the locomotion envs); a
+    missing or corrupt file is a one-line ValueError."""
     weights, info = expert_paths(name, folder)
     if not weights.exists() or not info.exists():
         raise ValueError(f"no expert for env {name!r}: expected {weights} and {info}")
     try:
         meta = json.loads(info.read_text())
+        if meta.get("kind") == "brax_ppo":  # Locomotion experts: Brax's tanh-Gaussian PPO policy.
+            from jaxdeconf.brax_experts import PolicyExpert, policy_template
+
+            return PolicyExpert(flax.serialization.from_bytes(policy_template(meta), weights.read_bytes()), meta)
         net = ExpertNetwork(int(meta["actions"]), int(meta["width"]), int(meta["depth"]))
         template = net.init(jax.random.key(0), jnp.zeros((int(meta["obs_size"]),)))
         params = flax.serialization.from_bytes(template, weights.read_bytes())
