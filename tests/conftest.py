@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
 import jaxdeconf  # noqa: F401  (sets the XLA CPU flag before any computation)
 from jaxdeconf.config import build
 from jaxdeconf.run import available_cores, pin_to_core
 
-# Like every training process, the tests run on one core (see jaxdeconf.run.pin_to_core); the CLI tests' worker
-# processes still spread over the available cores.
-pin_to_core(available_cores()[0])
+# Like every training process, each test process runs on one core (see jaxdeconf.run.pin_to_core): with
+# pytest-xdist (``-n 2`` in pyproject.toml) worker gwN takes core N, so the two workers of a 2-core machine never
+# share one. The CLI tests' subprocesses inherit their worker's core.
+_WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
+pin_to_core(available_cores()[_WORKER % len(available_cores())])
 
 TINY = {
     "model.width": "16",

@@ -105,8 +105,9 @@ def train_algorithm(
         if progress:
             bar.update(length)
             last = [r for r in rows if r["iteration"] == done]
-            shown = {k: np.nanmean([r[k] for r in last]) for k in last[0] if k not in ("algo", "seed", "iteration")}
-            bar.set_postfix({k: f"{v:.3g}" for k, v in shown.items()}, refresh=True)
+            shown = {k: [r[k] for r in last] for k in last[0] if k not in ("algo", "seed", "iteration")}
+            bar.set_postfix({k: f"{np.nanmean(v):.3g}" for k, v in shown.items() if not np.isnan(v).all()},
+                            refresh=True)  # Warm-up iterations have no policy loss yet.
     bar.close()
     ckpt.close()
     if last_eval:
