@@ -110,6 +110,11 @@ def plot(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> l
     if refs is not None:
         for kind, style in (("expert", ":"), ("interventional", "--"), ("conditional", "-.")):
             ax.axhline(refs[f"{kind}_count"], color="k", ls=style, lw=1, label=f"exact {kind}")
+    else:  # The MDPs: the expert's mean return over every episode it demonstrated during training.
+        demos = [r["expert_return"] for algo in config.algos for r in load_metrics(folder, algo)
+                 if "expert_return" in r]
+        if demos:
+            ax.axhline(float(np.mean(demos)), color="k", ls=":", lw=1, label="expert (demonstrations)")
     ax.set_xlabel("iteration")
     ax.set_ylabel("best-arm count per episode" if refs is not None else "return")
     ax.set_title(f"{config.env}: mean ± s.e. over {config.seeds} seeds")
