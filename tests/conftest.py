@@ -2,19 +2,24 @@
 
 from __future__ import annotations
 
-import os
-
 import pytest
 
 import jaxdeconf  # noqa: F401  (sets the XLA CPU flag before any computation)
 from jaxdeconf.config import build
 from jaxdeconf.run import available_cores, pin_to_core
 
-# Like every training process, each test process runs on one core (see jaxdeconf.run.pin_to_core): with
-# pytest-xdist (``-n 2`` in pyproject.toml) worker gwN takes core N, so the two workers of a 2-core machine never
-# share one. The CLI tests' subprocesses inherit their worker's core.
-_WORKER = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
-pin_to_core(available_cores()[_WORKER % len(available_cores())])
+
+def pytest_configure(config):
+    """Like every training process, each test process runs on one core (see jaxdeconf.run.pin_to_core). Under
+    pytest-xdist (``-n 2`` in pyproject.toml) worker gwN takes core N and the controller, which only distributes
+    tests, stays unpinned, so the workers it starts inherit every core and never share one. The CLI tests'
+    training subprocesses still spread over the available cores (each pins itself)."""
+    cores = available_cores()
+    if hasattr(config, "workerinput"):
+        pin_to_core(cores[int(config.workerinput["workerid"].removeprefix("gw")) % len(cores)])
+    elif not getattr(config.option, "numprocesses", None):
+        pin_to_core(cores[0])
+
 
 TINY = {
     "model.width": "16",

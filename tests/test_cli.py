@@ -25,7 +25,8 @@ def _bad(capfd, argv, expected):
 
 def test_bad_input_one_line_exit_2(tmp_path, capfd):
     out = ["--out", str(tmp_path / "r")]
-    _bad(capfd, ["--env", "cartpole", *out], "unknown env 'cartpole'; allowed: bandit")
+    _bad(capfd, ["--env", "cartpole", *out],
+         "unknown env 'cartpole'; allowed: ant_goal, bandit, half_cheetah, lunar_lander")
     _bad(capfd, ["--algo", "bc,gail", *out], "unknown algorithm 'gail'; allowed: bc, oracle, dil")
     _bad(capfd, ["--seeds", "0", *out], "seeds=0 is not allowed: need a positive integer")
     _bad(capfd, ["--set", "train.iterations=-3", *out], "train.iterations=-3 is not allowed")
