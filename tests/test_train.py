@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 from jaxdeconf.algos import Deconfounded
-from jaxdeconf.checkpoint import Checkpoints
 from jaxdeconf.data import buffer_add, buffer_sample
 from jaxdeconf.train import build_algorithm, seed_keys, train_algorithm
 
@@ -44,29 +43,6 @@ def test_seed_of_sweep_equals_single_run(tmp_path, tiny_config):
                 np.testing.assert_allclose(ra[key], rb[key], rtol=1e-4, atol=1e-5, err_msg=key)
             else:
                 assert ra[key] == rb[key]
-
-
-def test_interrupted_run_resumes_exactly(tmp_path, tiny_config, monkeypatch):
-    config = tiny_config()
-    train_algorithm(config, "dil", tmp_path / "whole", progress=False)
-
-    real_save = Checkpoints.save
-    calls = []
-
-    def save_then_die(self, step, state):
-        real_save(self, step, state)
-        calls.append(step)
-        if len(calls) == 1:
-            raise KeyboardInterrupt  # As if the user pressed Ctrl-C after the first chunk.
-
-    monkeypatch.setattr(Checkpoints, "save", save_then_die)
-    with pytest.raises(KeyboardInterrupt):
-        train_algorithm(config, "dil", tmp_path / "cut", progress=False)
-    assert not (tmp_path / "cut" / "DONE").exists()
-    assert max(r["iteration"] for r in _rows(tmp_path / "cut")) == 2
-    train_algorithm(config, "dil", tmp_path / "cut", progress=False)  # Resumes at iteration 2.
-    assert calls == [2, 4]
-    assert _rows(tmp_path / "cut") == _rows(tmp_path / "whole")
 
 
 def test_buffer_is_circular_and_samples_distinct_episodes(tiny_config):
