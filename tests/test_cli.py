@@ -34,6 +34,8 @@ def test_bad_input_one_line_exit_2(tmp_path, capfd):
     _bad(capfd, ["--set", "env.q=0", *out], "q=0.0 is outside the allowed range (0, 1]")
     _bad(capfd, ["--set", "train.nope=1", *out], "unknown field 'train.nope'")
     _bad(capfd, ["--set", "model.gru=abc", *out], "model.gru='abc' is not a valid int")
+    _bad(capfd, ["--set", "model.encoder=lstm", *out], "model.encoder='lstm' is not allowed; allowed: gru, evidence")
+    _bad(capfd, ["--set", "model.encoder_deltas=maybe", *out], "model.encoder_deltas='maybe' is not a boolean")
     _bad(capfd, ["--preset", "huge", *out], "unknown preset 'huge'")
     assert not (tmp_path / "r").exists()  # Nothing was written for bad input.
 

@@ -8,10 +8,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jaxdeconf.envs.base import ActionSpace
+from jaxdeconf.envs.base import ActionSpace, Observation
 
 from jaxdeconf import losses
-from jaxdeconf.models import Decoder, Encoder, RecurrentPolicy, log_prob
+from jaxdeconf.actors import DeconfoundedActor
+from jaxdeconf.models import Decoder, Encoder, EvidenceEncoder, LatentPolicy, RecurrentPolicy, log_prob
 
 HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 
@@ -65,11 +66,12 @@ def test_sequential_kl_prior_is_previous_posterior():
     np.testing.assert_allclose(kl, [0.5, 0.0, 2.0], atol=1e-6)
 
 
-def _tiny_models():
-    encoder, decoder = Encoder(8, 4, 6, 3), Decoder(8, 4, 1)
+def _tiny_models(enc_obs_size=1, kind="gru"):
+    encoder = Encoder(8, 4, 6, 3) if kind == "gru" else EvidenceEncoder(8, 4, 3)
+    decoder = Decoder(8, 4, 1)
     k1, k2 = jax.random.split(jax.random.key(0))
     obs, act, z = jnp.zeros((1, 1)), jnp.zeros((1, 5)), jnp.zeros((1, 3))
-    params = {"encoder": encoder.init(k1, obs, act), "decoder": decoder.init(k2, z, obs, act)}
+    params = {"encoder": encoder.init(k1, jnp.zeros((1, enc_obs_size)), act), "decoder": decoder.init(k2, z, obs, act)}
     return encoder, decoder, params
 
 
@@ -81,26 +83,33 @@ def _batch(T=7, B=3, seed=1):
     return obs, jax.nn.one_hot(action, 5), valid
 
 
-@pytest.mark.parametrize(("steps", "likelihood"), [(1, "bernoulli"), (3, "bernoulli"), (3, "gaussian")])
-def test_elbo_scan_matches_plain_loop(steps, likelihood):
-    encoder, decoder, params = _tiny_models()
+@pytest.mark.parametrize(("steps", "likelihood", "deltas", "kind"),
+                         [(1, "bernoulli", False, "gru"), (3, "bernoulli", False, "gru"),
+                          (3, "gaussian", False, "gru"), (3, "gaussian", True, "gru"),
+                          (3, "gaussian", True, "evidence")])
+def test_elbo_scan_matches_plain_loop(steps, likelihood, deltas, kind):
+    encoder, decoder, params = _tiny_models(enc_obs_size=2 if deltas else 1, kind=kind)
     obs, feats, valid = _batch()
     T, B = valid.shape
     key = jax.random.key(3)
-    # The Gaussian case scores standardised one-step changes (the MDPs' decoder target).
+    # The Gaussian case scores standardised one-step changes (the MDPs' decoder target); with ``deltas`` the encoder
+    # also reads them.
     scale = jnp.linspace(0.1, 2.0, obs.shape[-1]) if likelihood == "gaussian" else None
     loss, metrics = losses.elbo_loss(params, obs, feats, valid, key, encoder=encoder, decoder=decoder, beta=0.3,
-                                     steps=steps, likelihood=likelihood, delta_scale=scale)
+                                     steps=steps, likelihood=likelihood, delta_scale=scale, encoder_deltas=deltas)
 
     # The same objective written as plain Python loops over t and k with the per-step module methods.
     eps = jax.random.normal(key, (T, B, 3))
-    carry = jnp.zeros((B, 6))
+    carry = jnp.zeros((B, encoder.hidden))
     prev_mean, prev_logvar = jnp.zeros((B, 3)), jnp.zeros((B, 3))
     total, count = 0.0, 0.0
     for t in range(T):
         prev_action = feats[t - 1] if t > 0 else jnp.zeros((B, 5))
-        x = encoder.apply(params["encoder"], obs[t], prev_action, method=Encoder.embed)
-        carry, (mean, logvar) = encoder.apply(params["encoder"], carry, x, method=Encoder.recur)
+        enc_obs = obs[t]
+        if deltas:
+            enc_obs = jnp.concatenate([obs[t], (obs[t] - obs[max(t - 1, 0)]) / scale], axis=-1)
+        x = encoder.apply(params["encoder"], enc_obs, prev_action, method="embed")
+        carry, (mean, logvar) = encoder.apply(params["encoder"], carry, x, method="recur")
         z = mean + jnp.exp(0.5 * logvar) * eps[t]
         term = 0.3 * losses.kl_diag_gaussian(mean, logvar, prev_mean, prev_logvar)
         for k in range(steps):
@@ -138,3 +147,42 @@ def test_prediction_mask_counts_steps_left():
     _, count = losses.prediction_nll(decoder, params["decoder"], jnp.zeros((5, 1, 3)), obs, feats, valid, 3,
                                      "bernoulli")
     np.testing.assert_array_equal(count[:, 0], [3, 3, 3, 2, 1])
+
+
+@pytest.mark.parametrize(("deltas", "kind"), [(False, "gru"), (True, "gru"), (True, "evidence")])
+def test_deconfounded_actor_matches_teacher_forced_posterior(deltas, kind):
+    """Algorithm 2 step by step (what acts online) gives the policy outputs that training computes with scans."""
+    d, B, T = 3, 4, 6
+    encoder = Encoder(8, 4, 6, 2) if kind == "gru" else EvidenceEncoder(8, 4, 2)
+    policy = LatentPolicy(8, 5)
+    scale = jnp.array([0.5, 1.0, 2.0]) if deltas else None
+    k1, k2, k3, k4 = jax.random.split(jax.random.key(7), 4)
+    obs = jax.random.normal(k1, (T, B, d))
+    prev = losses.prev_actions(jax.nn.one_hot(jax.random.randint(k2, (T, B), 0, 5), 5))
+    enc_obs = losses.transition_inputs(obs, scale) if deltas else obs
+    params = {"encoder": encoder.init(k3, enc_obs[0], prev[0]), "policy": policy.init(k4, obs[0], jnp.zeros((B, 2)))}
+    mean, _ = losses.encoder_scan(encoder, params["encoder"], enc_obs, prev)
+    expected = policy.apply(params["policy"], obs, mean)
+    actor = DeconfoundedActor(encoder, policy, scale)
+    carry = actor.init_carry(B)
+    for t in range(T):
+        carry, out = actor(params, carry, Observation(expert=obs[t], imitator=obs[t], oracle=obs[t]), prev[t])
+        np.testing.assert_allclose(out, expected[t], rtol=1e-5, atol=1e-5)
+
+
+def test_evidence_encoder_posterior_is_the_product_of_its_factors():
+    """Hand-derived: N(0, 1) x N(2, 1/1) x N(-1, 1/2) has precision 4 and mean (0 + 2 - 2) / 4 = 0;
+    N(0, 1) x N(1, 1/3) x (a zero-precision factor) has precision 4 and mean 3 / 4."""
+    encoder = EvidenceEncoder(8, 4, 2)
+    params = encoder.init(jax.random.key(0), jnp.zeros((1, 3)), jnp.zeros((1, 5)))
+    factor = lambda m, p: jnp.array([[p[0] * m[0], p[1] * m[1], p[0], p[1]]])  # noqa: E731
+    carry = jnp.zeros((1, encoder.hidden))
+    carry, _ = encoder.apply(params, carry, factor([2.0, 1.0], [1.0, 3.0]), method="recur")
+    _, (mean, logvar) = encoder.apply(params, carry, factor([-1.0, 5.0], [2.0, 0.0]), method="recur")
+    np.testing.assert_allclose(mean[0], [0.0, 0.75], atol=1e-6)
+    np.testing.assert_allclose(logvar[0], [-np.log(4.0), -np.log(4.0)], atol=1e-6)
+    # The network's factors have positive precision, so the posterior variance never grows: no forgetting.
+    obs = jax.random.normal(jax.random.key(1), (20, 4, 3))
+    prev = jax.nn.one_hot(jax.random.randint(jax.random.key(2), (20, 4), 0, 5), 5)
+    _, logvar = losses.encoder_scan(encoder, params, obs, prev)
+    assert np.all(np.diff(np.asarray(logvar), axis=0) < 0)

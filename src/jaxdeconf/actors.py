@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxdeconf.envs.base import Environment, Observation
-from jaxdeconf.models import LOG_STD_MIN, Encoder, LatentPolicy, RecurrentPolicy
+from jaxdeconf.models import LOG_STD_MIN, Encoder, EvidenceEncoder, LatentPolicy, RecurrentPolicy
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,17 +52,32 @@ class RecurrentActor:
 
 @dataclasses.dataclass(frozen=True)
 class DeconfoundedActor:
-    """Algorithm 2: update the belief q_phi with (a_{t-1}, s_t), then act with pi_eta on its mean."""
+    """Algorithm 2: update the belief q_phi with (a_{t-1}, s_t), then act with pi_eta on its mean.
 
-    encoder: Encoder
+    With ``delta_scale`` the encoder also reads the standardised change s_t - s_{t-1} (``losses.transition_inputs``),
+    so the carry keeps the previous observation and whether there is one.
+    """
+
+    encoder: Encoder | EvidenceEncoder
     policy: LatentPolicy
+    delta_scale: Any = None  # [d] array, or None.
 
-    def init_carry(self, batch: int) -> jax.Array:
-        """Zero GRU state of the inference model."""
-        return jnp.zeros((batch, self.encoder.hidden), jnp.float32)
+    def init_carry(self, batch: int) -> Any:
+        """Zero GRU state of the inference model (and, with deltas, no previous observation yet)."""
+        gru = jnp.zeros((batch, self.encoder.hidden), jnp.float32)
+        if self.delta_scale is None:
+            return gru
+        return gru, jnp.zeros((batch, len(self.delta_scale)), jnp.float32), jnp.zeros((batch, 1), jnp.bool_)
 
-    def __call__(self, params: dict[str, Any], carry: jax.Array, obs: Observation, prev_action: jax.Array):
+    def __call__(self, params: dict[str, Any], carry: Any, obs: Observation, prev_action: jax.Array):
         """params: {"encoder": ..., "policy": ...}."""
-        x = self.encoder.apply(params["encoder"], obs.imitator, prev_action, method=Encoder.embed)
-        carry, (mean, _) = self.encoder.apply(params["encoder"], carry, x, method=Encoder.recur)
-        return carry, self.policy.apply(params["policy"], obs.imitator, mean)
+        s = obs.imitator
+        if self.delta_scale is None:
+            gru, enc_obs = carry, s
+        else:
+            gru, prev_obs, started = carry
+            enc_obs = jnp.concatenate([s, jnp.where(started, s - prev_obs, 0.0) / self.delta_scale], axis=-1)
+        x = self.encoder.apply(params["encoder"], enc_obs, prev_action, method="embed")
+        gru, (mean, _) = self.encoder.apply(params["encoder"], gru, x, method="recur")
+        carry = gru if self.delta_scale is None else (gru, s, jnp.ones_like(started))
+        return carry, self.policy.apply(params["policy"], s, mean)

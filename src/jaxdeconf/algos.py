@@ -31,7 +31,15 @@ from jaxdeconf.data import (
     rollout,
 )
 from jaxdeconf.envs.base import Environment, NormalizedViews
-from jaxdeconf.models import Decoder, Encoder, LatentPolicy, RecurrentPolicy, action_features, head_size
+from jaxdeconf.models import (
+    Decoder,
+    Encoder,
+    EvidenceEncoder,
+    LatentPolicy,
+    RecurrentPolicy,
+    action_features,
+    head_size,
+)
 
 
 @struct.dataclass
@@ -289,12 +297,23 @@ class Deconfounded(Algorithm):
                            if self.env.obs_likelihood == "gaussian" else None)
 
     @property
-    def networks(self) -> tuple[Encoder, Decoder, LatentPolicy]:
+    def encoder_scale(self) -> Any:
+        """The delta scale when the encoder reads standardised changes (``model.encoder_deltas``), else None."""
+        return self.delta_scale if self.config.model.encoder_deltas else None
+
+    def encoder_obs(self, obs: jax.Array) -> jax.Array:
+        """What q_phi reads along a sequence obs [T, B, d]: obs, or ``losses.transition_inputs``."""
+        scale = self.encoder_scale
+        return obs if scale is None else losses.transition_inputs(obs, scale)
+
+    @property
+    def networks(self) -> tuple[Encoder | EvidenceEncoder, Decoder, LatentPolicy]:
         """Encoder q_phi, decoder p_psi and policy pi_eta."""
         m = self.config.model
         size = self.env.obs_sizes(self.env_params).imitator
         return (
-            Encoder(m.width, m.action_embed, m.gru, m.latent),
+            Encoder(m.width, m.action_embed, m.gru, m.latent) if m.encoder == "gru"
+            else EvidenceEncoder(m.width, m.action_embed, m.latent),
             Decoder(m.width, m.action_embed, size),
             LatentPolicy(m.width, head_size(self.space)),
         )
@@ -311,7 +330,8 @@ class Deconfounded(Algorithm):
         encoder, decoder, policy = self.networks
         size, latent = self.env.obs_sizes(self.env_params).imitator, self.config.model.latent
         obs, act, z = jnp.zeros((1, size)), jnp.zeros((1, self.space.feature_size)), jnp.zeros((1, latent))
-        enc_params = {"encoder": encoder.init(k_enc, obs, act), "decoder": decoder.init(k_dec, z, obs, act)}
+        enc_obs = self.encoder_obs(obs[None])[0]
+        enc_params = {"encoder": encoder.init(k_enc, enc_obs, act), "decoder": decoder.init(k_dec, z, obs, act)}
         pol_params = policy.init(k_pol, obs, z)
         return TrainState(
             policy=Learner(pol_params, self.policy_tx.init(pol_params)),
@@ -325,7 +345,7 @@ class Deconfounded(Algorithm):
     def actor(self) -> DeconfoundedActor:
         """Algorithm 2."""
         encoder, _, policy = self.networks
-        return DeconfoundedActor(encoder, policy)
+        return DeconfoundedActor(encoder, policy, self.encoder_scale)
 
     def actor_params(self, state: TrainState) -> dict[str, Any]:
         """Encoder and policy parameters."""
@@ -350,6 +370,7 @@ class Deconfounded(Algorithm):
             steps=t.prediction_steps,
             likelihood=self.env.obs_likelihood,
             delta_scale=self.delta_scale,
+            encoder_deltas=self.encoder_scale is not None,
         )
         grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
 
@@ -366,7 +387,7 @@ class Deconfounded(Algorithm):
     def posterior_means(self, state: TrainState, traj: Trajectory) -> jax.Array:
         """Posterior means [T, B, L] of q_phi along ``traj``, detached: the policy never trains the encoder."""
         encoder, _, _ = self.networks
-        obs = traj.obs.imitator[: traj.horizon]
+        obs = self.encoder_obs(traj.obs.imitator[: traj.horizon])
         prev = losses.prev_actions(action_features(self.space, traj.action))
         mean, _ = losses.encoder_scan(encoder, state.encoder.params["encoder"], obs, prev)
         return jax.lax.stop_gradient(mean)

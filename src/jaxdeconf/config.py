@@ -7,6 +7,7 @@ import json
 from typing import Any
 
 ALGOS = ("bc", "oracle", "dil")
+ENCODERS = ("gru", "evidence")
 
 
 class ConfigError(ValueError):
@@ -22,6 +23,12 @@ class ModelConfig:
     gru: int = 500  # GRU hidden size of the inference model q_phi.
     bc_gru: int = 500  # GRU hidden size of the recurrent naive-BC / oracle policy.
     latent: int = 64  # Latent size of theta-hat.
+    # With a Gaussian observation likelihood, also feed q_phi the standardised change (s_t - s_{t-1}) / delta_scale
+    # that the decoder scores: the evidence about theta is in transitions, and small ones (an engine's kick) are a few
+    # percent of an observation's spread, hard for a small GRU to difference out of consecutive inputs.
+    encoder_deltas: bool = True
+    # q_phi's recurrence: "gru" (the paper's) or "evidence" (a product of per-step Gaussian factors; models.py).
+    encoder: str = "gru"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -273,7 +280,10 @@ def validate(config: Config) -> None:
         raise ConfigError(f"seeds={config.seeds} is not allowed: need a positive integer")
     if config.seed_start < 0:
         raise ConfigError(f"seed_start={config.seed_start} is not allowed: need an integer >= 0")
-    positive = {f"model.{f.name}": getattr(config.model, f.name) for f in dataclasses.fields(config.model)}
+    if config.model.encoder not in ENCODERS:
+        raise ConfigError(f"model.encoder={config.model.encoder!r} is not allowed; allowed: {', '.join(ENCODERS)}")
+    positive = {f"model.{f.name}": getattr(config.model, f.name) for f in dataclasses.fields(config.model)
+                if type(getattr(config.model, f.name)) is int}
     for name in ("iterations", "chunk", "episodes_per_iter", "batch_size", "policy_steps", "encoder_steps",
                  "buffer_episodes", "prediction_steps", "eval_episodes"):
         positive[f"train.{name}"] = getattr(config.train, name)

@@ -11,7 +11,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from jaxdeconf.models import Decoder, Encoder, RecurrentPolicy, log_prob
+from jaxdeconf.models import Decoder, Encoder, EvidenceEncoder, RecurrentPolicy, log_prob
 
 LOG_2PI = jnp.log(2.0 * jnp.pi)
 
@@ -53,15 +53,21 @@ def prev_actions(action_feats: jax.Array) -> jax.Array:
     return jnp.concatenate([jnp.zeros_like(action_feats[:1]), action_feats[:-1]], axis=0)
 
 
+def transition_inputs(obs: jax.Array, delta_scale: jax.Array) -> jax.Array:
+    """[s_t, (s_t - s_{t-1}) / delta_scale] along a sequence obs [T, B, d] -> [T, B, 2d], the change zero at t = 0."""
+    prev = jnp.concatenate([obs[:1], obs[:-1]], axis=0)
+    return jnp.concatenate([obs, (obs - prev) / delta_scale], axis=-1)
+
+
 def encoder_scan(
-    encoder: Encoder, params: Any, obs: jax.Array, prev_action: jax.Array
+    encoder: Encoder | EvidenceEncoder, params: Any, obs: jax.Array, prev_action: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
     """Posterior means and log-variances [T, B, L] of q_phi over a sequence (obs and prev_action [T, B, ...])."""
-    inputs = encoder.apply(params, obs, prev_action, method=Encoder.embed)
+    inputs = encoder.apply(params, obs, prev_action, method="embed")
     carry = jnp.zeros((*obs.shape[1:-1], encoder.hidden), jnp.float32)
 
     def body(carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
-        return encoder.apply(params, carry, x, method=Encoder.recur)
+        return encoder.apply(params, carry, x, method="recur")
 
     _, (mean, logvar) = jax.lax.scan(body, carry, inputs)
     return mean, logvar
@@ -133,21 +139,24 @@ def elbo_loss(
     valid: jax.Array,
     key: jax.Array,
     *,
-    encoder: Encoder,
+    encoder: Encoder | EvidenceEncoder,
     decoder: Decoder,
     beta: float,
     steps: int,
     likelihood: str,
     delta_scale: jax.Array | None = None,
+    encoder_deltas: bool = False,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """Negative sequential ELBO (eq. 11) per valid step, on exploration data (``delta_scale``: see prediction_nll).
+    """Negative sequential ELBO (eq. 11) per valid step, on exploration data (``delta_scale``: see prediction_nll;
+    with ``encoder_deltas`` and a ``delta_scale`` the encoder reads ``transition_inputs``).
 
     params: {"encoder": ..., "decoder": ...}; obs [T+1, B, d] (imitator view); action_feats [T, B, A]; valid [T, B].
     At step t the posterior q_t = q_phi(. | s_{0:t}, a_{0:t-1}) is sampled by reparameterisation; its prior is q_{t-1}
     (N(0, I) at t = 0); the decoder scores the next K observations from the sample.
     """
     T = valid.shape[0]
-    mean, logvar = encoder_scan(encoder, params["encoder"], obs[:T], prev_actions(action_feats))
+    enc_obs = transition_inputs(obs[:T], delta_scale) if encoder_deltas and delta_scale is not None else obs[:T]
+    mean, logvar = encoder_scan(encoder, params["encoder"], enc_obs, prev_actions(action_feats))
     z = mean + jnp.exp(0.5 * logvar) * jax.random.normal(key, mean.shape)
     nll, _ = prediction_nll(decoder, params["decoder"], z, obs, action_feats, valid, steps, likelihood, delta_scale)
     kl = sequential_kl(mean, logvar)

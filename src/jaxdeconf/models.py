@@ -110,6 +110,54 @@ class Encoder(nn.Module):
         return self.recur(carry, self.embed(obs, prev_action))
 
 
+class EvidenceEncoder(nn.Module):
+    """q_phi as a product of Gaussian factors, one per step, with the prior N(0, I) (PEARL's encoder, Rakelly et al.
+    2019): each (s_t, a_{t-1}) — with ``model.encoder_deltas`` also the change s_t - s_{t-1}, so a whole transition —
+    gives a factor of mean m_t and precision p_t, and the posterior after t steps has precision 1 + sum p and mean
+    sum(p m) / (1 + sum p).
+
+    For a θ fixed per episode and transitions independent given θ (the confounded envs' structure) the exact
+    posterior has this form, and evidence once gathered is never forgotten, which a GRU trained on short exploration
+    episodes does not guarantee on the expert's longer ones. The carry holds the running sums [B, 2 * latent].
+    """
+
+    width: int
+    action_embed: int
+    latent: int
+
+    @property
+    def hidden(self) -> int:
+        """Carry size: the running sums of p m and p."""
+        return 2 * self.latent
+
+    def setup(self) -> None:
+        """Sub-networks: the same fused block as the GRU encoder's, then the factor's parameters."""
+        self.obs_net = MLP((self.width, self.width))
+        self.action_net = nn.Dense(self.action_embed)
+        self.interact = Interaction()
+        self.fuse = MLP((self.width,))
+        self.out = nn.Dense(2 * self.latent)
+
+    def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
+        """One factor per step [..., 2 * latent]: (p m, p) with p = softplus(.) > 0."""
+        h = self.fuse(self.interact(self.obs_net(obs), self.action_net(prev_action)))
+        mean, raw = jnp.split(self.out(h), 2, axis=-1)
+        precision = nn.softplus(raw)
+        return jnp.concatenate([precision * mean, precision], axis=-1)
+
+    def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+        """Add this step's factor: carry [B, 2L], x [B, 2L] -> new carry, (mean, logvar) each [B, L]."""
+        carry = carry + x
+        weighted, precision = jnp.split(carry, 2, axis=-1)
+        precision = 1.0 + precision
+        return carry, (weighted / precision, -jnp.log(precision))
+
+    def __call__(self, obs: jax.Array, prev_action: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+        """One step from the prior (used for initialisation)."""
+        carry = jnp.zeros((*obs.shape[:-1], self.hidden), jnp.float32)
+        return self.recur(carry, self.embed(obs, prev_action))
+
+
 class Decoder(nn.Module):
     """p_psi(s_{t+k+1} | z_t, s_{t+k}, a_{t+k}): the next observation's mean or logits."""
 
