@@ -1,0 +1,83 @@
+"""How much of θ a trained inference model's posterior mean carries: a linear probe, per step, on fresh episodes.
+
+    python experiments/probe_latent.py results/lunar_lander-cpu [--steps 5,10,25,50,100,200,300] [--episodes 256]
+
+Restores each seed's last ``dil`` checkpoint from a results folder, rolls out the expert and the imitator itself
+(Algorithm 2), and at each listed step fits a least-squares map from the posterior mean q_phi(. | tau_{:t}) to θ on
+half of the episodes still running, scoring it on the other half. θ is read from the last ``--theta-dims`` entries of
+the expert's view (the confounded envs append it there). Prints the held-out accuracy for a two-valued θ
+(LunarLander's swap) and R² otherwise, with the fraction of episodes still running.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+import sys
+
+import jax
+import numpy as np
+
+from jaxdeconf.actors import ExpertActor
+from jaxdeconf.checkpoint import Checkpoints
+from jaxdeconf.config import from_dict
+from jaxdeconf.data import rollout
+from jaxdeconf.train import build_algorithm, seed_keys
+
+
+def probe(z: np.ndarray, theta: np.ndarray) -> float:
+    """Held-out accuracy (θ in {0, 1}) or R² of a linear map z -> θ; first half fits, second half scores."""
+    half = len(z) // 2
+    x = np.c_[z, np.ones(len(z))]
+    binary = set(np.unique(theta)) <= {0.0, 1.0}
+    target = 2.0 * theta - 1.0 if binary else theta
+    w, *_ = np.linalg.lstsq(x[:half], target[:half], rcond=None)
+    pred = x[half:] @ w
+    if binary:
+        return float(np.mean((pred[:, 0] > 0) == (theta[half:, 0] > 0.5)))
+    resid = np.sum((pred - theta[half:]) ** 2)
+    return float(1.0 - resid / np.sum((theta[half:] - theta[half:].mean(0)) ** 2))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Print one line per (seed, data source)."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("folder", type=pathlib.Path)
+    parser.add_argument("--steps", default="5,10,25,50,100,200,300")
+    parser.add_argument("--episodes", type=int, default=256)
+    parser.add_argument("--theta-dims", type=int, default=1)
+    args = parser.parse_args(argv)
+    config_path = args.folder / "config.json"
+    ckpt_dir = args.folder / "dil" / "checkpoints"
+    if not config_path.exists() or not ckpt_dir.exists():
+        print(f"error: {args.folder} holds no dil run (need config.json and dil/checkpoints)", file=sys.stderr)
+        return 2
+    config = from_dict(json.loads(config_path.read_text()))
+    algo = build_algorithm(config, "dil")
+    states = jax.jit(jax.vmap(algo.init))(seed_keys(config))
+    checkpoints = Checkpoints(ckpt_dir)
+    states = checkpoints.restore(checkpoints.latest_step(), states)
+    horizon = algo.env.horizon(algo.env_params)
+    steps = [t for t in (int(s) for s in args.steps.split(",")) if t < horizon]
+    print(f"{'seed':>4} {'episodes':>9}  " + "  ".join(f"t={t:<4}" for t in steps) + "   (alive fraction below)")
+    for seed in range(config.seeds):
+        state = jax.tree.map(lambda x, i=seed: x[i], states)
+        sources = (("expert", ExpertActor(algo.env, algo.env_params), None),
+                   ("imitator", algo.actor(), algo.actor_params(state)))
+        for name, actor, params in sources:
+            traj, _ = jax.jit(lambda k, a=actor, p=params: rollout(algo.env, algo.env_params, a, p, k, args.episodes))(
+                jax.random.key(1000 + seed))
+            theta = np.asarray(traj.obs.expert[0, :, -args.theta_dims:])
+            z = np.asarray(algo.posterior_means(state, traj))
+            valid = np.asarray(traj.valid)
+            scores = [probe(z[t][valid[t]], theta[valid[t]]) if valid[t].sum() >= 8 else float("nan") for t in steps]
+            alive = [valid[t].mean() for t in steps]
+            print(f"{config.seed_start + seed:>4} {name:>9}  " + "  ".join(f"{v:6.2f}" for v in scores))
+            print(f"{'':>4} {'':>9}  " + "  ".join(f"({a:4.2f})" for a in alive))
+    checkpoints.close()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
