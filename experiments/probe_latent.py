@@ -60,16 +60,18 @@ def main(argv: list[str] | None = None) -> int:
     states = checkpoints.restore(checkpoints.latest_step(), states)
     horizon = algo.env.horizon(algo.env_params)
     steps = [t for t in (int(s) for s in args.steps.split(",")) if t < horizon]
+    # Compiled once each, outside the seed loop (a Brax rollout takes minutes to compile on a CPU).
+    actors = {"expert": ExpertActor(algo.env, algo.env_params), "imitator": algo.actor()}
+    roll = {name: jax.jit(lambda p, k, a=actor: rollout(algo.env, algo.env_params, a, p, k, args.episodes)[0])
+            for name, actor in actors.items()}
+    posterior_means = jax.jit(algo.posterior_means)
     print(f"{'seed':>4} {'episodes':>9}  " + "  ".join(f"t={t:<4}" for t in steps) + "   (alive fraction below)")
     for seed in range(config.seeds):
         state = jax.tree.map(lambda x, i=seed: x[i], states)
-        sources = (("expert", ExpertActor(algo.env, algo.env_params), None),
-                   ("imitator", algo.actor(), algo.actor_params(state)))
-        for name, actor, params in sources:
-            traj, _ = jax.jit(lambda k, a=actor, p=params: rollout(algo.env, algo.env_params, a, p, k, args.episodes))(
-                jax.random.key(1000 + seed))
+        for name, params in (("expert", None), ("imitator", algo.actor_params(state))):
+            traj = roll[name](params, jax.random.key(1000 + seed))
             theta = np.asarray(traj.obs.expert[0, :, -args.theta_dims:])
-            z = np.asarray(algo.posterior_means(state, traj))
+            z = np.asarray(posterior_means(state, traj))
             valid = np.asarray(traj.valid)
             scores = [probe(z[t][valid[t]], theta[valid[t]]) if valid[t].sum() >= 8 else float("nan") for t in steps]
             alive = [valid[t].mean() for t in steps]

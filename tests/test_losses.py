@@ -96,7 +96,8 @@ def test_elbo_scan_matches_plain_loop(steps, likelihood, deltas, kind):
     # also reads them.
     scale = jnp.linspace(0.1, 2.0, obs.shape[-1]) if likelihood == "gaussian" else None
     loss, metrics = losses.elbo_loss(params, obs, feats, valid, key, encoder=encoder, decoder=decoder, beta=0.3,
-                                     steps=steps, likelihood=likelihood, delta_scale=scale, encoder_deltas=deltas)
+                                     steps=steps, likelihood=likelihood, delta_scale=scale,
+                                     encoder_delta_scale=scale if deltas else None)
 
     # The same objective written as plain Python loops over t and k with the per-step module methods.
     eps = jax.random.normal(key, (T, B, 3))

@@ -370,7 +370,7 @@ class Deconfounded(Algorithm):
             steps=t.prediction_steps,
             likelihood=self.env.obs_likelihood,
             delta_scale=self.delta_scale,
-            encoder_deltas=self.encoder_scale is not None,
+            encoder_delta_scale=self.encoder_scale,
         )
         grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
 

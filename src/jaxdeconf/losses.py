@@ -145,17 +145,17 @@ def elbo_loss(
     steps: int,
     likelihood: str,
     delta_scale: jax.Array | None = None,
-    encoder_deltas: bool = False,
+    encoder_delta_scale: jax.Array | None = None,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Negative sequential ELBO (eq. 11) per valid step, on exploration data (``delta_scale``: see prediction_nll;
-    with ``encoder_deltas`` and a ``delta_scale`` the encoder reads ``transition_inputs``).
+    with ``encoder_delta_scale`` the encoder reads ``transition_inputs`` standardised by it).
 
     params: {"encoder": ..., "decoder": ...}; obs [T+1, B, d] (imitator view); action_feats [T, B, A]; valid [T, B].
     At step t the posterior q_t = q_phi(. | s_{0:t}, a_{0:t-1}) is sampled by reparameterisation; its prior is q_{t-1}
     (N(0, I) at t = 0); the decoder scores the next K observations from the sample.
     """
     T = valid.shape[0]
-    enc_obs = transition_inputs(obs[:T], delta_scale) if encoder_deltas and delta_scale is not None else obs[:T]
+    enc_obs = obs[:T] if encoder_delta_scale is None else transition_inputs(obs[:T], encoder_delta_scale)
     mean, logvar = encoder_scan(encoder, params["encoder"], enc_obs, prev_actions(action_feats))
     z = mean + jnp.exp(0.5 * logvar) * jax.random.normal(key, mean.shape)
     nll, _ = prediction_nll(decoder, params["decoder"], z, obs, action_feats, valid, steps, likelihood, delta_scale)

@@ -77,26 +77,40 @@ def sample(space: ActionSpace, key: jax.Array, out: jax.Array) -> jax.Array:
     return mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape)
 
 
-class Encoder(nn.Module):
-    """q_phi(theta-hat | tau_{:t}): MLP(obs) ⊕ embedding(previous action) -> GRU -> (mean, log-variance)."""
+class StepInput(nn.Module):
+    """The per-step input block the recurrent networks share: MLP(obs) and an embedding of the previous action,
+    fused through ``Interaction``. Subclasses call ``super().setup()`` and add their recurrence."""
 
     width: int
     action_embed: int
+
+    def setup(self) -> None:
+        """The fused block's sub-networks."""
+        self.obs_net = MLP((self.width, self.width))
+        self.action_net = nn.Dense(self.action_embed)
+        self.interact = Interaction()
+        self.fuse = MLP((self.width,))
+
+    def fused(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
+        """[..., width] for any leading shape: the observation and the action that led to it, fused."""
+        return self.fuse(self.interact(self.obs_net(obs), self.action_net(prev_action)))
+
+
+class Encoder(StepInput):
+    """q_phi(theta-hat | tau_{:t}): MLP(obs) ⊕ embedding(previous action) -> GRU -> (mean, log-variance)."""
+
     hidden: int
     latent: int
 
     def setup(self) -> None:
         """Sub-networks shared by ``embed`` and ``recur``."""
-        self.obs_net = MLP((self.width, self.width))
-        self.action_net = nn.Dense(self.action_embed)
-        self.interact = Interaction()
-        self.fuse = MLP((self.width,))
+        super().setup()
         self.cell = nn.GRUCell(self.hidden)
         self.out = nn.Dense(2 * self.latent)
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
-        """GRU inputs [..., width] for any leading shape: the observation and the action that led to it, fused."""
-        return self.fuse(self.interact(self.obs_net(obs), self.action_net(prev_action)))
+        """GRU inputs [..., width] for any leading shape."""
+        return self.fused(obs, prev_action)
 
     def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         """One GRU step: carry [B, hidden], x [B, E] -> new carry, (mean, logvar) each [B, latent]."""
@@ -110,7 +124,7 @@ class Encoder(nn.Module):
         return self.recur(carry, self.embed(obs, prev_action))
 
 
-class EvidenceEncoder(nn.Module):
+class EvidenceEncoder(StepInput):
     """q_phi as a product of Gaussian factors, one per step, with the prior N(0, I) (PEARL's encoder, Rakelly et al.
     2019): each (s_t, a_{t-1}) — with ``model.encoder_deltas`` also the change s_t - s_{t-1}, so a whole transition —
     gives a factor of mean m_t and precision p_t, and the posterior after t steps has precision 1 + sum p and mean
@@ -121,8 +135,6 @@ class EvidenceEncoder(nn.Module):
     episodes does not guarantee on the expert's longer ones. The carry holds the running sums [B, 2 * latent].
     """
 
-    width: int
-    action_embed: int
     latent: int
 
     @property
@@ -132,16 +144,12 @@ class EvidenceEncoder(nn.Module):
 
     def setup(self) -> None:
         """Sub-networks: the same fused block as the GRU encoder's, then the factor's parameters."""
-        self.obs_net = MLP((self.width, self.width))
-        self.action_net = nn.Dense(self.action_embed)
-        self.interact = Interaction()
-        self.fuse = MLP((self.width,))
+        super().setup()
         self.out = nn.Dense(2 * self.latent)
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
         """One factor per step [..., 2 * latent]: (p m, p) with p = softplus(.) > 0."""
-        h = self.fuse(self.interact(self.obs_net(obs), self.action_net(prev_action)))
-        mean, raw = jnp.split(self.out(h), 2, axis=-1)
+        mean, raw = jnp.split(self.out(self.fused(obs, prev_action)), 2, axis=-1)
         precision = nn.softplus(raw)
         return jnp.concatenate([precision * mean, precision], axis=-1)
 
@@ -186,27 +194,22 @@ class LatentPolicy(nn.Module):
         return nn.Dense(self.out_size)(MLP((self.width, self.width))(h))
 
 
-class RecurrentPolicy(nn.Module):
+class RecurrentPolicy(StepInput):
     """Naive-BC (or oracle) policy: MLP(obs) ⊕ embedding(previous action) -> GRU -> MLP -> head."""
 
-    width: int
-    action_embed: int
     hidden: int
     out_size: int
 
     def setup(self) -> None:
         """Sub-networks shared by ``embed`` and ``recur``."""
-        self.obs_net = MLP((self.width, self.width))
-        self.action_net = nn.Dense(self.action_embed)
-        self.interact = Interaction()
-        self.fuse = MLP((self.width,))
+        super().setup()
         self.cell = nn.GRUCell(self.hidden)
         self.head = MLP((self.width,))
         self.out = nn.Dense(self.out_size)
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
         """GRU inputs [..., width] for any leading shape (the same fused block as the encoder's, for parity)."""
-        return self.fuse(self.interact(self.obs_net(obs), self.action_net(prev_action)))
+        return self.fused(obs, prev_action)
 
     def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, jax.Array]:
         """One GRU step -> new carry, head output [B, out_size]."""
