@@ -7,6 +7,12 @@ Restores each seed's last ``dil`` checkpoint from a results folder, rolls out th
 half of the episodes still running, scoring it on the other half. θ is read from the last ``--theta-dims`` entries of
 the expert's view (the confounded envs append it there). Prints the held-out accuracy for a two-valued θ
 (LunarLander's swap) and R² otherwise, with the fraction of episodes still running.
+
+It also prints how much the cloned policy relies on what q_phi says about *this* episode: its negative
+log-likelihood of the expert's actions on the expert episodes with z as inferred, and with each episode's z sequence
+swapped for another episode's (a fixed permutation). A policy that reads θ from z loses likelihood when z is swapped;
+one that has learnt to read the expert's state instead (where the state itself reveals θ, as a half_cheetah's speed
+does once it has reached the target) barely notices.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import sys
 import jax
 import numpy as np
 
+from jaxdeconf import losses
 from jaxdeconf.actors import ExpertActor
 from jaxdeconf.checkpoint import Checkpoints
 from jaxdeconf.config import from_dict
@@ -65,6 +72,13 @@ def main(argv: list[str] | None = None) -> int:
     roll = {name: jax.jit(lambda p, k, a=actor: rollout(algo.env, algo.env_params, a, p, k, args.episodes)[0])
             for name, actor in actors.items()}
     posterior_means = jax.jit(algo.posterior_means)
+
+    @jax.jit
+    def expert_nll(state, traj, z):
+        out = algo.policy_outputs(state.policy.params, state, traj, z)
+        return losses.nll_from_outputs(algo.space, out, traj.action, traj.valid)
+
+    reliance = []
     print(f"{'seed':>4} {'episodes':>9}  " + "  ".join(f"t={t:<4}" for t in steps) + "   (alive fraction below)")
     for seed in range(config.seeds):
         state = jax.tree.map(lambda x, i=seed: x[i], states)
@@ -77,6 +91,13 @@ def main(argv: list[str] | None = None) -> int:
             alive = [valid[t].mean() for t in steps]
             print(f"{config.seed_start + seed:>4} {name:>9}  " + "  ".join(f"{v:6.2f}" for v in scores))
             print(f"{'':>4} {'':>9}  " + "  ".join(f"({a:4.2f})" for a in alive))
+            if name == "expert":
+                swapped = z[:, np.random.default_rng(0).permutation(z.shape[1])]
+                reliance.append((config.seed_start + seed, float(expert_nll(state, traj, z)),
+                                 float(expert_nll(state, traj, swapped))))
+    print("\npolicy NLL of the expert's actions on expert episodes: z as inferred -> z swapped between episodes")
+    for seed, own, swapped in reliance:
+        print(f"{seed:>4}  {own:9.3f} -> {swapped:9.3f}  (+{swapped - own:.3f})")
     checkpoints.close()
     return 0
 

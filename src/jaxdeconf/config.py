@@ -139,7 +139,10 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "train.chunk": 25,
             "train.episodes_per_iter": 32,
             "train.batch_size": 32,
-            "train.buffer_episodes": 512,  # 16 iterations of data: fresh enough, and BC does not memorise it.
+            # Fresh expert data every iteration, as the paper (an "infinite-size training dataset" generated on the
+            # fly) and the reference code (buffer = one iteration's 32 episodes) do. A 512-episode buffer (16
+            # iterations) left naive BC a little less deluded than the exact conditional policy late in an episode.
+            "train.buffer_episodes": 32,
             "train.policy_steps": 16,
             "train.encoder_steps": 4,
             "train.policy_lr": 1e-3,
