@@ -15,8 +15,9 @@ step (as Brax measures it). 1000 steps. The reference code's variant: ``flip_pro
 ant_goal: θ = a goal in the disc of radius 10 (radius 10·sqrt(U), uniform angle). The state is Brax's ant
 observation *with* the torso's x and y (29-d), because the goal is meaningless without the position. The imitator
 sees the state plus the goal's distance and world-frame bearing atan2(Δy, Δx) from the torso, each with N(0, 0.1²)
-noise; the expert and the oracle see the state plus the goal. Reward -‖xy - goal‖₂ (``l1_reward=True``: the
-reference code's L1 distance), no control cost. 200 steps.
+noise, the noisy bearing b given as (cos b, sin b) (``raw_bearing=True``: as the angle itself, which jumps by 2π
+where it wraps at ±π); the expert and the oracle see the state plus the goal. Reward -‖xy - goal‖₂
+(``l1_reward=True``: the reference code's L1 distance), no control cost. 200 steps.
 
 Termination: neither env terminates. Brax's ant ends an episode when its torso leaves z in [0.2, 1.0]; here a flipped
 ant simply keeps its fixed-length episode, keeps paying its distance, and the per-step extra ``unhealthy`` records
@@ -243,6 +244,10 @@ class AntGoalParams:
 
     goal_radius: float = 10.0
     cue_noise: float = 0.1  # Std of the noise on the imitator's (distance, bearing).
+    # The imitator reads the noisy bearing b as (cos b, sin b); True gives the angle itself. As an angle, a bearing
+    # near ±π wraps by 2π between steps (0.4% of the expert's steps), which tripled the spread of its one-step
+    # changes on expert data (0.42 against 0.155 without the wraps) and so blurred what the decoder could score.
+    raw_bearing: bool = struct.field(pytree_node=False, default=False)
     l1_reward: bool = struct.field(pytree_node=False, default=False)  # Reference code: True.
     backend: str = struct.field(pytree_node=False, default="mjx")
     horizon: int = struct.field(pytree_node=False, default=200)
@@ -274,9 +279,10 @@ class AntGoal(BraxConfounded):
         super().validate(params)
 
     def obs_sizes(self, params: AntGoalParams) -> Observation:
-        """State (29, with x and y) + 2 for every view."""
+        """State (29, with x and y) + the goal (expert), the cue (imitator: 3, or 2 with ``raw_bearing``), or both."""
         s = self.state_size(params)
-        return Observation(expert=s + 2, imitator=s + 2, oracle=s + 4)
+        cue = 2 if params.raw_bearing else 3
+        return Observation(expert=s + 2, imitator=s + cue, oracle=s + cue + 2)
 
     def sample_theta(self, key: jax.Array, params: AntGoalParams) -> jax.Array:
         """A goal uniform in the disc: radius R·sqrt(U), angle U(0, 2π)."""
@@ -308,10 +314,15 @@ class AntGoal(BraxConfounded):
         return {"distance": jnp.linalg.norm(theta - torso_xy(after)),
                 "unhealthy": ((z < 0.2) | (z > 1.0)).astype(jnp.float32)}
 
+    def cue_features(self, cue: jax.Array, params: AntGoalParams) -> jax.Array:
+        """The imitator's reading of the noisy (distance, bearing): (distance, cos, sin), or the pair itself."""
+        if params.raw_bearing:
+            return cue
+        return jnp.stack([cue[0], jnp.cos(cue[1]), jnp.sin(cue[1])])
+
     def observe(self, state: LocomotionState, params: AntGoalParams) -> Observation:
-        """Expert: state and goal; imitator: state and noisy (distance, bearing); oracle: both."""
-        del params  # Unused.
+        """Expert: state and goal; imitator: state and the noisy cue's features; oracle: both."""
         s = state.brax.obs
-        imitator = jnp.concatenate([s, state.cue])
+        imitator = jnp.concatenate([s, self.cue_features(state.cue, params)])
         return Observation(expert=jnp.concatenate([s, state.theta]), imitator=imitator,
                            oracle=jnp.concatenate([imitator, state.theta]))

@@ -132,20 +132,24 @@ def test_views_on_constructed_states():
     cheetah's reference variant (whose expert also sees the indicator)."""
     from jaxdeconf.envs.locomotion import LocomotionState
 
-    for name, theta, overrides in [("half_cheetah", jnp.array(2.5), {}),
-                                   ("half_cheetah", jnp.array(2.5), {"expert_sees_indicator": True}),
-                                   ("ant_goal", jnp.array([3.0, -4.0]), {})]:
+    ant_cue = jnp.array([5.1, -0.9])
+    for name, theta, overrides, cue, seen in [
+        ("half_cheetah", jnp.array(2.5), {}, jnp.array([-1.0]), jnp.array([-1.0])),
+        ("half_cheetah", jnp.array(2.5), {"expert_sees_indicator": True}, jnp.array([-1.0]), jnp.array([-1.0])),
+        ("ant_goal", jnp.array([3.0, -4.0]), {}, ant_cue, jnp.array([5.1, np.cos(-0.9), np.sin(-0.9)])),
+        ("ant_goal", jnp.array([3.0, -4.0]), {"raw_bearing": True}, ant_cue, ant_cue),
+    ]:
         env, params = make(name, **overrides)
         size = env.state_size(params)
         s = jnp.arange(size, dtype=jnp.float32) / 7.0
-        cue = jnp.array([-1.0]) if name == "half_cheetah" else jnp.array([5.1, -0.9])
         state = LocomotionState(brax=types.SimpleNamespace(obs=s), theta=theta, cue=cue, t=jnp.zeros((), jnp.int32))
         obs = env.observe(state, params)
         sizes = env.obs_sizes(params)
         assert obs.imitator.shape == (sizes.imitator,) and obs.expert.shape == (sizes.expert,)
-        np.testing.assert_array_equal(obs.imitator, jnp.concatenate([s, cue]))
-        np.testing.assert_array_equal(obs.oracle, jnp.concatenate([s, cue, theta.reshape(-1)]))
-        expected = [s, theta.reshape(-1), cue] if overrides else [s, theta.reshape(-1)]
+        assert obs.oracle.shape == (sizes.oracle,)
+        np.testing.assert_allclose(obs.imitator, jnp.concatenate([s, seen]), rtol=1e-6)
+        np.testing.assert_allclose(obs.oracle, jnp.concatenate([s, seen, theta.reshape(-1)]), rtol=1e-6)
+        expected = [s, theta.reshape(-1), cue] if overrides.get("expert_sees_indicator") else [s, theta.reshape(-1)]
         np.testing.assert_array_equal(obs.expert, jnp.concatenate(expected))
         # Changing θ alone changes the expert's and oracle's views and leaves the imitator's untouched.
         other = env.observe(state.replace(theta=theta + 0.5), params)
@@ -171,6 +175,26 @@ def test_ant_goal_distribution_and_cue_noise():
     noise = cue - np.array([5.0, np.arctan2(4.0, 3.0)])
     np.testing.assert_allclose(noise.mean(0), 0.0, atol=4.5 * 0.1 / np.sqrt(20000))
     np.testing.assert_allclose(noise.std(0), 0.1, rtol=0.03)
+
+
+def test_ant_bearing_features_are_continuous_across_the_wrap():
+    """The torso straddling the line behind its goal (true bearing ±π, alternating sides): the imitator's (cos, sin)
+    of the noisy bearing moves by about the noise from one step to the next, where the raw angle jumps by about 2π."""
+    y = jnp.where(jnp.arange(4000) % 2 == 0, 0.01, -0.01)
+    goal = jnp.array([5.0, 0.0])
+    keys = jax.random.split(jax.random.key(5), 4000)
+    for raw in (False, True):
+        env, params = make("ant_goal", raw_bearing=raw)
+
+        def features(key, y_torso, env=env, params=params):
+            state = _body_at(10.0, y_torso)
+            return env.cue_features(env.cue(key, state, goal, params), params)
+
+        jumps = np.abs(np.diff(np.asarray(jax.vmap(features)(keys, y))[:, 1:], axis=0)).max(-1)
+        if raw:
+            assert np.median(jumps) > 2 * np.pi - 0.5
+        else:
+            assert jumps.max() < 0.8  # |Δ(cos, sin)| <= |Δ noise|, about 0.14 std.
 
 
 def _body_at(x, y=0.0, z=0.5):
