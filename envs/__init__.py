@@ -44,6 +44,19 @@ REGISTRY: dict[str, Callable[[], Environment]] = {
 }
 
 
+def parse_bool(value: Any) -> bool:
+    """A boolean from a bool or the strings true/false, yes/no, 1/0 (any case); ValueError for anything else
+    (``bool("false")`` is True, so command-line strings cannot go through ``bool``)."""
+    if isinstance(value, bool):
+        return value
+    text = str(value).strip().lower()
+    if text in ("1", "true", "yes"):
+        return True
+    if text in ("0", "false", "no"):
+        return False
+    raise ValueError(f"{value!r} is not a boolean (allowed: true, false)")
+
+
 def make(name: str, **overrides: Any) -> tuple[Environment, Any]:
     """Build environment ``name`` and its params with ``overrides``; raise ValueError on unknown names or values."""
     if name not in REGISTRY:
@@ -55,10 +68,11 @@ def make(name: str, **overrides: Any) -> tuple[Environment, Any]:
         if key not in fields:
             raise ValueError(f"unknown parameter {key!r} for env {name!r}; allowed: {', '.join(fields)}")
         default = getattr(params, key)
+        kind = "boolean (allowed: true, false)" if isinstance(default, bool) else type(default).__name__
         try:
-            value = type(default)(value)
+            value = parse_bool(value) if isinstance(default, bool) else type(default)(value)
         except (TypeError, ValueError):
-            raise ValueError(f"env {name} parameter {key}={value!r} is not a {type(default).__name__}") from None
+            raise ValueError(f"env {name} parameter {key}={value!r} is not a {kind}") from None
         params = params.replace(**{key: value})
     env.validate(params)
     return env, params

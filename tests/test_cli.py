@@ -36,6 +36,8 @@ def test_bad_input_one_line_exit_2(tmp_path, capfd):
     _bad(capfd, ["--set", "model.gru=abc", *out], "model.gru='abc' is not a valid int")
     _bad(capfd, ["--set", "model.encoder=lstm", *out], "model.encoder='lstm' is not allowed; allowed: gru, evidence")
     _bad(capfd, ["--set", "model.encoder_deltas=maybe", *out], "model.encoder_deltas='maybe' is not a boolean")
+    _bad(capfd, ["--env", "ant", "--set", "env.raw_bearing=maybe", *out],
+         "env ant_goal parameter raw_bearing='maybe' is not a boolean (allowed: true, false)")
     _bad(capfd, ["--preset", "huge", *out], "unknown preset 'huge'")
     assert not (tmp_path / "r").exists()  # Nothing was written for bad input.
 
@@ -83,3 +85,15 @@ def test_probabilities_in_range_are_accepted(tmp_path, value):
 
     config = build("bandit", "cpu", ("bc",), 1, {"env.p": value, "env.q": value})
     assert config.env_params == {"p": value, "q": value}
+
+
+def test_env_booleans_from_strings():
+    """Command-line strings reach env parameters as the boolean they spell (``bool("false")`` would be True)."""
+    from jaxdeconf.envs import make
+
+    for text, expected in [("false", False), ("False", False), ("0", False), ("no", False), ("true", True),
+                           ("1", True), ("yes", True)]:
+        _, params = make("ant_goal", l1_reward=text, raw_bearing=text)
+        assert params.l1_reward is expected and params.raw_bearing is expected
+        _, params = make("half_cheetah", expert_sees_indicator=text)
+        assert params.expert_sees_indicator is expected

@@ -6,6 +6,8 @@ import dataclasses
 import json
 from typing import Any
 
+from jaxdeconf.envs import parse_bool
+
 ALGOS = ("bc", "oracle", "dil")
 ENCODERS = ("gru", "evidence")
 
@@ -235,11 +237,10 @@ ENV_ALIASES = {"ant": "ant_goal", "cheetah": "half_cheetah"}
 def _coerce(value: Any, default: Any, name: str) -> Any:
     """Convert a command-line string to the type of the field's default."""
     if isinstance(default, bool):
-        if str(value).lower() in ("1", "true", "yes"):
-            return True
-        if str(value).lower() in ("0", "false", "no"):
-            return False
-        raise ConfigError(f"{name}={value!r} is not a boolean (allowed: true, false)")
+        try:
+            return parse_bool(value)
+        except ValueError:
+            raise ConfigError(f"{name}={value!r} is not a boolean (allowed: true, false)") from None
     try:
         return type(default)(value)
     except (TypeError, ValueError):
