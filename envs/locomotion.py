@@ -104,6 +104,11 @@ class BraxConfounded(Environment):
         """The imitator's per-step hint about θ."""
         raise NotImplementedError
 
+    def cue_features(self, cue: jax.Array, params: Any) -> jax.Array:
+        """What the imitator's view holds of the cue (the cue itself unless an env says otherwise)."""
+        del params  # Unused.
+        return cue
+
     def reward(self, before: Any, after: Any, action: jax.Array, theta: jax.Array, params: Any) -> jax.Array:
         """The confounded task's reward for one step."""
         raise NotImplementedError
@@ -230,7 +235,7 @@ class HalfCheetah(BraxConfounded):
         """Expert: state, target (and indicator in the reference variant); imitator: state, indicator."""
         s = state.brax.obs
         target = state.theta[None]
-        imitator = jnp.concatenate([s, state.cue])
+        imitator = jnp.concatenate([s, self.cue_features(state.cue, params)])
         expert = jnp.concatenate([s, target, state.cue] if params.expert_sees_indicator else [s, target])
         return Observation(expert=expert, imitator=imitator, oracle=jnp.concatenate([imitator, target]))
 

@@ -85,11 +85,13 @@ def test_shapes_finite_and_deterministic(name, request):
 @pytest.mark.timeout(600)
 @pytest.mark.parametrize("name", ["cheetah", "ant"])
 def test_imitator_view_is_state_plus_cue_only(name, request):
-    """The imitator's view is exactly Brax's state and the cue; θ enters only through the cue, the oracle's view is
-    the imitator's plus θ, and the expert's the state plus θ (the cheetah's reference variant adds the indicator)."""
-    _, _, _, (theta, _, rec) = request.getfixturevalue(name)
+    """The imitator's view is exactly Brax's state and the cue's features (the ant's bearing as cos and sin); θ enters
+    only through the cue, the oracle's view is the imitator's plus θ, and the expert's the state plus θ (the cheetah's
+    reference variant adds the indicator)."""
+    env, params, _, (theta, _, rec) = request.getfixturevalue(name)
     imitator, oracle, expert = rec["obs"].imitator, rec["obs"].oracle, rec["obs"].expert
-    np.testing.assert_array_equal(imitator, np.concatenate([rec["state_obs"], rec["cue"]], -1))
+    cue = np.asarray(jax.vmap(jax.vmap(lambda c: env.cue_features(c, params)))(rec["cue"]))
+    np.testing.assert_allclose(imitator, np.concatenate([rec["state_obs"], cue], -1), rtol=1e-6, atol=1e-6)
     theta_t = np.broadcast_to(theta.reshape(1, B, -1), (T, B, theta.reshape(B, -1).shape[1]))
     np.testing.assert_array_equal(oracle, np.concatenate([imitator, theta_t], -1))
     np.testing.assert_array_equal(expert, np.concatenate([rec["state_obs"], theta_t], -1))
