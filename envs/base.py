@@ -110,7 +110,7 @@ class Environment:
 class NormalizedViews(Environment):
     """``env`` with the imitator's and the oracle's views standardised by fixed per-dimension statistics.
 
-    The statistics are fitted once from expert episodes (``jaxdeconf.algos.fit_view_normalizer``), as the paper
+    The statistics are fitted once from expert episodes (``jaxdeconf.algos.base.fit_view_normalizer``), as the paper
     normalises observations from expert data, so every learner's inputs and the decoder's targets are on unit scale.
     The expert's view stays raw: the expert was trained on it.
     """

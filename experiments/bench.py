@@ -3,7 +3,8 @@ default's wall time, compile time and peak memory; LunarLander env steps per sec
 Brax envs' steps per second and the confounding layer's overhead. Prints a table; numbers are measured on the machine
 it runs on.
 
-Sections can be chosen: ``make bench SECTIONS="reference seeds e2e lunar brax"`` (the default is all five).
+Also seconds per iteration of every algorithm at each env's CPU preset (section ``algos``). Sections can be chosen:
+``make bench SECTIONS="reference seeds e2e algos lunar brax"`` (the default is all six).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import time
 import jax
 
 import jaxdeconf  # noqa: F401  (XLA CPU flags)
-from jaxdeconf.config import build
+from jaxdeconf.config import ALGOS, build
 from jaxdeconf.run import available_cores, pin_to_core
 from jaxdeconf.train import build_algorithm, compiled_chunk, seed_keys
 
@@ -25,9 +26,11 @@ from jaxdeconf.train import build_algorithm, compiled_chunk, seed_keys
 TORCH_S_PER_ITER = {"dil": 17.0, "bc": 165.0}
 
 
-def time_iterations(algo_name: str, preset: str, seeds: int, iters: int, overrides: dict) -> tuple[float, float]:
+def time_iterations(
+    algo_name: str, preset: str, seeds: int, iters: int, overrides: dict, env: str = "bandit"
+) -> tuple[float, float]:
     """(compile seconds, run seconds per iteration) of a chunk of ``iters`` iterations over ``seeds`` seeds."""
-    config = build("bandit", preset, (algo_name,), seeds, {"train.warmup": 0, "train.chunk": iters, **overrides})
+    config = build(env, preset, (algo_name,), seeds, {"train.warmup": 0, "train.chunk": iters, **overrides})
     algo = build_algorithm(config, algo_name)
     states = jax.jit(jax.vmap(algo.init))(seed_keys(config))
     jax.block_until_ready(states)
@@ -79,6 +82,13 @@ def main(sections: list[str]) -> None:
                 print(f"{name:4s} seeds={seeds:2d}: {s:6.3f} s/iteration, {s / seeds:6.3f} s per seed-iteration "
                       f"(compile {c:.1f} s)")
 
+
+    if "algos" in sections:
+        print("\n## Every algorithm at each env's CPU preset: seconds per iteration (after warm-up), 1 seed")
+        for env in ("bandit", "lunar_lander", "half_cheetah", "ant_goal"):
+            for name in ALGOS:
+                c, s = time_iterations(name, "cpu", 1, 2, {}, env=env)
+                print(f"{env:13s} {name:7s}: {s:7.3f} s/iteration (compile {c:.1f} s)", flush=True)
 
     if "lunar" in sections:
         lunar_lander_speed()
@@ -200,7 +210,7 @@ def _brax_one(name: str, n: int) -> None:
           f"{100 * (rates['raw'] / rates['ours'] - 1):+.1f}%", flush=True)
 
 
-SECTIONS = ("reference", "seeds", "e2e", "lunar", "brax")
+SECTIONS = ("reference", "seeds", "e2e", "algos", "lunar", "brax")
 
 if __name__ == "__main__":
     if sys.argv[1:2] == ["_brax_one"]:

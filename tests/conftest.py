@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 import jaxdeconf  # noqa: F401  (sets the XLA CPU flag before any computation)
@@ -44,3 +45,16 @@ TINY = {
 def tiny_config():
     """A few-second config of all three algorithms on a 10-step bandit."""
     return lambda seeds=2, **extra: build("bandit", "cpu", ("bc", "oracle", "dil"), seeds, {**TINY, **extra})
+
+
+def assert_rows_close(a: list[dict], b: list[dict]) -> None:
+    """Two lists of metrics rows hold the same keys, equal integers and strings, and floats equal to float32
+    rounding (a seed's program inside a vmapped sweep may fuse differently from a lone run's)."""
+    assert len(a) == len(b)
+    for ra, rb in zip(a, b, strict=True):
+        assert ra.keys() == rb.keys()
+        for key in ra:
+            if isinstance(ra[key], float):
+                np.testing.assert_allclose(ra[key], rb[key], rtol=1e-4, atol=1e-5, err_msg=key)
+            else:
+                assert ra[key] == rb[key]

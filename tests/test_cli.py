@@ -27,7 +27,15 @@ def test_bad_input_one_line_exit_2(tmp_path, capfd):
     out = ["--out", str(tmp_path / "r")]
     _bad(capfd, ["--env", "cartpole", *out],
          "unknown env 'cartpole'; allowed: ant_goal, bandit, half_cheetah, lunar_lander")
-    _bad(capfd, ["--algo", "bc,gail", *out], "unknown algorithm 'gail'; allowed: bc, oracle, dil")
+    _bad(capfd, ["--algo", "bc,sqil", *out], "unknown algorithm 'sqil'; allowed: bc, oracle, dil, dagger, gail")
+    _bad(capfd, ["--set", "dagger.anneal_iterations=-1", *out], "dagger.anneal_iterations=-1 is not allowed")
+    _bad(capfd, ["--set", "gail.disc_steps=0", *out], "gail.disc_steps=0 is not allowed: need a positive integer")
+    _bad(capfd, ["--set", "gail.lr=nan", *out], "gail.lr=nan is not allowed: need a finite number > 0")
+    _bad(capfd, ["--set", "gail.gamma=1.5", *out], "gail.gamma=1.5 is not allowed: need a number in [0, 1]")
+    _bad(capfd, ["--set", "gail.disc_input=image", *out], "gail.disc_input='image' is not allowed")
+    _bad(capfd, ["--set", "gail.reward=sparse", *out], "gail.reward='sparse' is not allowed; allowed: discriminator")
+    _bad(capfd, ["--set", "gail.minibatches=5", *out], "gail.minibatches=5 must divide the generator's 128 episodes")
+    _bad(capfd, ["--set", "gail.nope=1", *out], "unknown field 'gail.nope'")
     _bad(capfd, ["--seeds", "0", *out], "seeds=0 is not allowed: need a positive integer")
     _bad(capfd, ["--set", "train.iterations=-3", *out], "train.iterations=-3 is not allowed")
     _bad(capfd, ["--set", "env.p=1.5", *out], "p=1.5 is outside the allowed range (0, 1]")

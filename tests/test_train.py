@@ -9,8 +9,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import assert_rows_close
 
-from jaxdeconf.algos import Deconfounded
+from jaxdeconf.algos.dil import Deconfounded
 from jaxdeconf.data import buffer_add, buffer_sample
 from jaxdeconf.train import build_algorithm, seed_keys, train_algorithm
 
@@ -36,13 +37,7 @@ def test_seed_of_sweep_equals_single_run(tmp_path, tiny_config):
     a = [r for r in _rows(tmp_path / "sweep") if r["seed"] == 2]
     b = _rows(tmp_path / "single")
     assert len(a) == len(b) == 4
-    for ra, rb in zip(a, b, strict=True):
-        assert ra.keys() == rb.keys()
-        for key in ra:
-            if isinstance(ra[key], float):
-                np.testing.assert_allclose(ra[key], rb[key], rtol=1e-4, atol=1e-5, err_msg=key)
-            else:
-                assert ra[key] == rb[key]
+    assert_rows_close(a, b)
 
 
 def test_buffer_is_circular_and_samples_distinct_episodes(tiny_config):

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from typing import Any
 
+from jaxdeconf.algos import NAMES as ALGOS
 from jaxdeconf.envs import parse_bool
 
-ALGOS = ("bc", "oracle", "dil")
 ENCODERS = ("gru", "evidence")
+DISC_INPUTS = ("next", "transition")
+GAIL_REWARDS = ("discriminator", "env")
 
 
 class ConfigError(ValueError):
@@ -56,6 +59,35 @@ class TrainConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class DaggerConfig:
+    """DAgger's mixture schedule (its policy and BC steps are bc's: ``model.bc_gru``, ``train.policy_*``)."""
+
+    # beta, the probability that a step executes the expert's action, falls linearly from 1 at iteration 0 to 0 at
+    # this iteration and stays 0 after; 0 means the imitator acts alone from the start.
+    anneal_iterations: int = 125
+
+
+@dataclasses.dataclass(frozen=True)
+class GailConfig:
+    """GAIL: the recurrent PPO generator and the discriminator (defaults: the reference code's constants)."""
+
+    rollout_factor: int = 4  # Generator episodes per iteration, as a multiple of train.episodes_per_iter.
+    disc_steps: int = 20  # Discriminator gradient steps per iteration.
+    disc_lr: float = 3e-4  # Discriminator Adam learning rate.
+    disc_input: str = "next"  # What the discriminator reads: "next" (s', the reference code's) or "transition".
+    reward: str = "discriminator"  # "discriminator" (-log(1 - D(.))) or "env" (the true reward: a PPO check).
+    lr: float = 3e-4  # Generator (actor and critic) Adam learning rate.
+    epochs: int = 10  # PPO epochs over each iteration's rollouts.
+    minibatches: int = 4  # Minibatches per epoch, each of whole episodes.
+    clip_eps: float = 0.2  # PPO's probability-ratio clip.
+    gamma: float = 0.99  # Discount.
+    gae_lambda: float = 0.95  # GAE's lambda.
+    max_grad_norm: float = 0.5  # Global-norm gradient clip of the generator.
+    value_coef: float = 0.5  # Weight of the critic's squared error in the generator's loss.
+    entropy_coef: float = 0.0  # Weight of the policy's entropy bonus.
+
+
+@dataclasses.dataclass(frozen=True)
 class Config:
     """A whole experiment: environment, algorithms, seeds, sizes and training constants."""
 
@@ -66,6 +98,8 @@ class Config:
     seed_start: int = 0  # Seeds are seed_start .. seed_start + seeds - 1.
     model: ModelConfig = ModelConfig()
     train: TrainConfig = TrainConfig()
+    dagger: DaggerConfig = DaggerConfig()
+    gail: GailConfig = GailConfig()
 
     @property
     def num_chunks(self) -> int:
@@ -79,7 +113,7 @@ class Config:
         return out
 
 
-def _locomotion_cpu(horizon: int, prediction_steps: int) -> dict[str, Any]:
+def _locomotion_cpu(horizon: int, prediction_steps: int, anneal: int) -> dict[str, Any]:
     """The reduced Brax preset: what a 2-core CPU trains in minutes."""
     return {
         "env.horizon": horizon,
@@ -103,11 +137,12 @@ def _locomotion_cpu(horizon: int, prediction_steps: int) -> dict[str, Any]:
         "train.beta": 1.0,
         "train.prediction_steps": prediction_steps,
         "train.eval_episodes": 64,
+        "dagger.anneal_iterations": anneal,
     }
 
 
-def _locomotion_paper(latent: int, prediction_steps: int, buffer_episodes: int) -> dict[str, Any]:
-    """SPEC.md's reference configuration for the Brax envs."""
+def _locomotion_paper(latent: int, prediction_steps: int, buffer_episodes: int, anneal: int) -> dict[str, Any]:
+    """The reference configuration for the Brax envs."""
     return {
         "model.width": 128,
         "model.action_embed": 32,
@@ -125,6 +160,7 @@ def _locomotion_paper(latent: int, prediction_steps: int, buffer_episodes: int) 
         "train.beta": 1.0,
         "train.prediction_steps": prediction_steps,
         "train.eval_episodes": 64,
+        "dagger.anneal_iterations": anneal,
     }
 
 
@@ -153,6 +189,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "train.encoder_lr": 3e-3,
             "train.beta": 0.001,  # The paper's appendix value; the reference code's 0.01 also learns, more slowly.
             "train.eval_episodes": 256,
+            "dagger.anneal_iterations": 100,
         },
         # The reference code's bandit configuration (batch 32, 100 policy / 1 encoder step per iteration).
         "paper": {
@@ -171,6 +208,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "train.encoder_steps": 1,
             "train.beta": 0.01,
             "train.eval_episodes": 64,
+            "dagger.anneal_iterations": 125,
         },
     },
     "lunar_lander": {
@@ -194,8 +232,10 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "train.beta": 1.0,
             "train.prediction_steps": 10,
             "train.eval_episodes": 32,
+            # The reference code anneals over 125 of 300 iterations; the same share of this preset's 60.
+            "dagger.anneal_iterations": 25,
         },
-        # SPEC.md's reference configuration (for a GPU): GRU 500, latent 64, K = 50, replay of 2e6 transitions.
+        # The reference configuration (for a GPU): GRU 500, latent 64, K = 50, replay of 2e6 transitions.
         "paper": {
             "model.width": 128,
             "model.action_embed": 32,
@@ -213,22 +253,27 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "train.beta": 1.0,
             "train.prediction_steps": 50,
             "train.eval_episodes": 64,
+            "dagger.anneal_iterations": 125,
         },
     },
     "half_cheetah": {
         # Reduced for a 2-core CPU: 200-step episodes (the paper's are 1000), small nets, 40 iterations of 8 episodes.
-        "cpu": _locomotion_cpu(horizon=200, prediction_steps=10),
-        # SPEC.md's configuration (for a GPU): GRU 500, latent 64, K = 10, 2000 episodes = 2e6 transitions of replay.
-        "paper": _locomotion_paper(latent=64, prediction_steps=10, buffer_episodes=2000),
+        "cpu": _locomotion_cpu(horizon=200, prediction_steps=10, anneal=8),  # 63 of 300 iterations, scaled to 40.
+        # The reference configuration (for a GPU): GRU 500, latent 64, K = 10, 2000 episodes (2e6 transitions).
+        "paper": _locomotion_paper(latent=64, prediction_steps=10, buffer_episodes=2000, anneal=63),
     },
     "ant_goal": {
         # Reduced for a 2-core CPU: small nets, K = 10 (the paper's is 50), 40 iterations of 8 episodes.
-        "cpu": _locomotion_cpu(horizon=200, prediction_steps=10),
-        # SPEC.md's configuration (for a GPU): latent 8, K = 50; replay capped at 2000 episodes (4e5 transitions,
+        "cpu": _locomotion_cpu(horizon=200, prediction_steps=10, anneal=5),  # Inside the warm-up, as in the reference.
+        # The reference configuration (for a GPU): latent 8, K = 50; replay capped at 2000 episodes (4e5 transitions,
         # against the reference code's 2e6) so that a seed's buffers fit next to others on one GPU.
-        "paper": _locomotion_paper(latent=8, prediction_steps=50, buffer_episodes=2000),
+        "paper": _locomotion_paper(latent=8, prediction_steps=50, buffer_episodes=2000, anneal=20),
     },
 }
+
+#: The config's sections (dataclass fields of Config), each overridable as ``section.field`` from the command line.
+SECTIONS: tuple[str, ...] = tuple(
+    f.name for f in dataclasses.fields(Config) if dataclasses.is_dataclass(f.default))
 
 #: Short names the CLI accepts (the paper calls AntGoal "ant").
 ENV_ALIASES = {"ant": "ant_goal", "cheetah": "half_cheetah"}
@@ -249,7 +294,7 @@ def _coerce(value: Any, default: Any, name: str) -> Any:
 
 def apply_overrides(config: Config, overrides: dict[str, Any]) -> Config:
     """Return ``config`` with dotted overrides (``train.iterations``, ``model.gru``, ``env.p``) applied."""
-    sections: dict[str, dict[str, Any]] = {"model": {}, "train": {}}
+    sections: dict[str, dict[str, Any]] = {name: {} for name in SECTIONS}
     env_params = dict(config.env_params)
     top: dict[str, Any] = {}
     for name, value in overrides.items():
@@ -265,14 +310,10 @@ def apply_overrides(config: Config, overrides: dict[str, Any]) -> Config:
         elif name in ("seeds", "seed_start"):
             top[name] = _coerce(value, getattr(config, name), name)
         else:
-            raise ConfigError(f"unknown field {name!r}; allowed: model.*, train.*, env.*, seeds, seed_start")
-    return dataclasses.replace(
-        config,
-        model=dataclasses.replace(config.model, **sections["model"]),
-        train=dataclasses.replace(config.train, **sections["train"]),
-        env_params=env_params,
-        **top,
-    )
+            allowed = ", ".join(f"{s}.*" for s in ("env", *SECTIONS))
+            raise ConfigError(f"unknown field {name!r}; allowed: {allowed}, seeds, seed_start")
+    replaced = {name: dataclasses.replace(getattr(config, name), **fields) for name, fields in sections.items()}
+    return dataclasses.replace(config, env_params=env_params, **replaced, **top)
 
 
 def validate(config: Config) -> None:
@@ -304,11 +345,40 @@ def validate(config: Config) -> None:
     for name in ("beta", "weight_decay"):
         if getattr(config.train, name) < 0:
             raise ConfigError(f"train.{name}={getattr(config.train, name)} is not allowed: need a number >= 0")
+    _validate_baselines(config)
     if config.train.batch_size > config.train.buffer_episodes:
         raise ConfigError(
             f"train.batch_size={config.train.batch_size} exceeds train.buffer_episodes="
             f"{config.train.buffer_episodes}: a batch must fit in the buffer"
         )
+
+
+def _validate_baselines(config: Config) -> None:
+    """Raise ConfigError for a bad value of the dagger.* or gail.* sections."""
+    g = config.gail
+    if config.dagger.anneal_iterations < 0:
+        raise ConfigError(f"dagger.anneal_iterations={config.dagger.anneal_iterations} is not allowed: need an "
+                          "integer >= 0")
+    for name in ("rollout_factor", "disc_steps", "epochs", "minibatches"):
+        if getattr(g, name) < 1:
+            raise ConfigError(f"gail.{name}={getattr(g, name)} is not allowed: need a positive integer")
+    for name in ("disc_lr", "lr", "clip_eps", "max_grad_norm"):
+        if not math.isfinite(getattr(g, name)) or getattr(g, name) <= 0:
+            raise ConfigError(f"gail.{name}={getattr(g, name)} is not allowed: need a finite number > 0")
+    for name in ("value_coef", "entropy_coef"):
+        if not math.isfinite(getattr(g, name)) or getattr(g, name) < 0:
+            raise ConfigError(f"gail.{name}={getattr(g, name)} is not allowed: need a finite number >= 0")
+    for name in ("gamma", "gae_lambda"):
+        if not 0 <= getattr(g, name) <= 1:
+            raise ConfigError(f"gail.{name}={getattr(g, name)} is not allowed: need a number in [0, 1]")
+    if g.disc_input not in DISC_INPUTS:
+        raise ConfigError(f"gail.disc_input={g.disc_input!r} is not allowed; allowed: {', '.join(DISC_INPUTS)}")
+    if g.reward not in GAIL_REWARDS:
+        raise ConfigError(f"gail.reward={g.reward!r} is not allowed; allowed: {', '.join(GAIL_REWARDS)}")
+    episodes = config.train.episodes_per_iter * g.rollout_factor
+    if episodes % g.minibatches:
+        raise ConfigError(f"gail.minibatches={g.minibatches} must divide the generator's {episodes} episodes per "
+                          "iteration (train.episodes_per_iter x gail.rollout_factor)")
 
 
 def build(env: str, preset: str, algos: tuple[str, ...], seeds: int, overrides: dict[str, Any]) -> Config:
@@ -338,6 +408,8 @@ def from_dict(data: dict[str, Any]) -> Config:
         seed_start=int(data.get("seed_start", 0)),
         model=ModelConfig(**data["model"]),
         train=TrainConfig(**data["train"]),
+        dagger=DaggerConfig(**data.get("dagger", {})),
+        gail=GailConfig(**data.get("gail", {})),
     )
 
 

@@ -50,6 +50,14 @@ def rollout(
     Returns the trajectory and the actor's probability of the best action per step [T, B] (NaN where undefined or
     for continuous actions).
     """
+    traj, p_best, _ = rollout_with_outputs(env, env_params, actor, actor_params, key, num_episodes)
+    return traj, p_best
+
+
+def rollout_with_outputs(
+    env: Environment, env_params: Any, actor: Actor, actor_params: Any, key: jax.Array, num_episodes: int
+) -> tuple[Trajectory, jax.Array, jax.Array]:
+    """``rollout`` that also returns the actor's head outputs [T, B, ...] as it acted (PPO's behaviour policy)."""
     space = env.action_space(env_params)
     T = env.horizon(env_params)
     key_reset, key_steps = jax.random.split(key)
@@ -76,6 +84,7 @@ def rollout(
             "best_action": best.astype(jnp.int32),
             "extras": {name: value * mask for name, value in result.extras.items()},
             "p_best": p_best,
+            "out": out,
         }
         alive = alive & ~result.done
         return (next_state, result.obs, actor_carry, action_features(space, action), alive), record
@@ -91,7 +100,20 @@ def rollout(
         best_action=rec["best_action"],
         extras=rec["extras"],
     )
-    return traj, rec["p_best"]
+    return traj, rec["p_best"], rec["out"]
+
+
+@struct.dataclass
+class Tagged:
+    """Episodes with per-step annotations that a buffer keeps beside them (DAgger's labels, PPO's log-probs)."""
+
+    traj: Trajectory
+    tags: dict[str, jax.Array]  # Each [T, B, ...].
+
+    @property
+    def valid(self) -> jax.Array:
+        """The episodes' valid mask [T, B] (what the buffer functions read)."""
+        return self.traj.valid
 
 
 @struct.dataclass

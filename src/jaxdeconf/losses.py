@@ -168,3 +168,15 @@ def elbo_loss(
 def nll_from_outputs(space: Any, out: jax.Array, action: jax.Array, valid: jax.Array) -> jax.Array:
     """Mean negative log-likelihood of actions under head outputs over valid steps (eq. 10's BC loss)."""
     return masked_mean(-log_prob(space, out, action), valid)
+
+
+def soft_nll(space: Any, out: jax.Array, label: jax.Array, valid: jax.Array) -> jax.Array:
+    """Mean over valid steps of the expected negative log-likelihood of the expert's action (DAgger's loss).
+
+    ``label`` is the expert's action distribution [T, B, n] for a discrete space (the cross-entropy
+    -sum_a label(a) log pi(a); with a one-hot label it is the NLL of that action), or its action [T, B, A] for a box.
+    """
+    if not space.discrete:
+        return nll_from_outputs(space, out, label, valid)
+    cross_entropy = -jnp.sum(label * jax.nn.log_softmax(out, axis=-1), axis=-1)
+    return masked_mean(cross_entropy, valid)

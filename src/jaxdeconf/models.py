@@ -68,6 +68,16 @@ def log_prob(space: ActionSpace, out: jax.Array, action: jax.Array) -> jax.Array
     return jnp.sum(-0.5 * z**2 - log_std - 0.5 * jnp.log(2 * jnp.pi), axis=-1)
 
 
+def entropy(space: ActionSpace, out: jax.Array) -> jax.Array:
+    """Entropy of the action distribution of a head output (leading axes kept)."""
+    if space.discrete:
+        logp = jax.nn.log_softmax(out, axis=-1)
+        return -jnp.sum(jnp.exp(logp) * logp, axis=-1)
+    _, log_std = jnp.split(out, 2, axis=-1)
+    log_std = jnp.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
+    return jnp.sum(log_std + 0.5 * jnp.log(2 * jnp.pi * jnp.e), axis=-1)
+
+
 def sample(space: ActionSpace, key: jax.Array, out: jax.Array) -> jax.Array:
     """Draw an action from a head output."""
     if space.discrete:
@@ -220,3 +230,14 @@ class RecurrentPolicy(StepInput):
         """One step from a zero carry (used for initialisation)."""
         carry = jnp.zeros((*obs.shape[:-1], self.hidden), jnp.float32)
         return self.recur(carry, self.embed(obs, prev_action))
+
+
+class Discriminator(nn.Module):
+    """GAIL's discriminator: an MLP from transition features to the logit of "the expert produced this"."""
+
+    width: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        """Logits [...] for features [..., f]."""
+        return nn.Dense(1)(MLP((self.width, self.width))(x))[..., 0]

@@ -43,6 +43,55 @@ class ExpertNetwork(nn.Module):
         return logits, value
 
 
+def gae(
+    rewards: jax.Array, values: jax.Array, next_values: jax.Array, continues: jax.Array, gamma: float, lam: float
+) -> jax.Array:
+    """Generalised advantage estimates [T, ...] by a reverse scan over time (axis 0).
+
+    delta_t = r_t + gamma c_t V'_t - V_t and A_t = delta_t + gamma lam c_t A_{t+1}, where V'_t (``next_values``) is
+    the value of the state after step t and c_t (``continues``, 0 or 1) says whether the episode goes on after it.
+    """
+
+    def body(next_adv: jax.Array, step: tuple) -> tuple[jax.Array, jax.Array]:
+        reward, value, next_value, cont = step
+        delta = reward + gamma * next_value * cont - value
+        adv = delta + gamma * lam * cont * next_adv
+        return adv, adv
+
+    _, adv = jax.lax.scan(body, jnp.zeros_like(values[0]), (rewards, values, next_values, continues), reverse=True)
+    return adv
+
+
+def _mean(x: jax.Array, mask: jax.Array | None) -> jax.Array:
+    """Mean of ``x``, over the entries where ``mask`` holds when one is given."""
+    if mask is None:
+        return x.mean()
+    mask = mask.astype(x.dtype)
+    return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
+
+
+def normalize_advantages(adv: jax.Array, mask: jax.Array | None = None) -> jax.Array:
+    """Advantages standardised to mean 0 and standard deviation 1 (over the masked entries)."""
+    mean = _mean(adv, mask)
+    if mask is None:
+        return (adv - mean) / (adv.std() + 1e-8)
+    std = jnp.sqrt(_mean((adv - mean) ** 2, mask))
+    return (adv - mean) / (std + 1e-8)
+
+
+def clipped_surrogate(
+    log_prob: jax.Array, old_log_prob: jax.Array, adv: jax.Array, clip: float, mask: jax.Array | None = None
+) -> jax.Array:
+    """PPO's clipped surrogate loss -mean(min(r A, clip(r, 1 - eps, 1 + eps) A)), r = exp(log_prob - old)."""
+    ratio = jnp.exp(log_prob - old_log_prob)
+    return -_mean(jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - clip, 1 + clip) * adv), mask)
+
+
+def squared_value_error(value: jax.Array, target: jax.Array, mask: jax.Array | None = None) -> jax.Array:
+    """The critic's loss 0.5 mean((V - target)^2)."""
+    return 0.5 * _mean((value - target) ** 2, mask)
+
+
 @dataclasses.dataclass(frozen=True)
 class PPOConfig:
     """PPO hyperparameters (defaults: the rl-zoo LunarLander settings, with more parallel envs)."""
@@ -117,11 +166,10 @@ def train_ppo(
         logits, value = net.apply(params, batch["obs"])
         log_probs = jax.nn.log_softmax(logits)
         log_prob = jnp.take_along_axis(log_probs, batch["action"][:, None], -1)[:, 0]
-        ratio = jnp.exp(log_prob - batch["log_prob"])
-        adv = (batch["adv"] - batch["adv"].mean()) / (batch["adv"].std() + 1e-8)
-        policy_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config.clip, 1 + config.clip) * adv).mean()
+        adv = normalize_advantages(batch["adv"])
+        policy_loss = clipped_surrogate(log_prob, batch["log_prob"], adv, config.clip)
         # No value clipping (SB3's default): returns here are in the hundreds; a clip of 0.2 would freeze the critic.
-        value_loss = 0.5 * ((value - batch["target"]) ** 2).mean()
+        value_loss = squared_value_error(value, batch["target"])
         entropy = -(jnp.exp(log_probs) * log_probs).sum(-1).mean()
         total = policy_loss + config.value_coef * value_loss - config.entropy * entropy
         return total, {"policy_loss": policy_loss, "value_loss": value_loss, "entropy": entropy}
@@ -132,15 +180,9 @@ def train_ppo(
         (_, state, obs, ep_return), traj = jax.lax.scan(
             env_step, (params, state, obs, ep_return), jax.random.split(k_roll, config.rollout))
         _, last_value = net.apply(params, obs.expert)
-
-        def gae(carry: tuple, t: dict) -> tuple[tuple, jax.Array]:
-            next_adv, next_value = carry
-            not_done = 1.0 - t["done"].astype(jnp.float32)
-            delta = t["reward"] + config.gamma * next_value * not_done - t["value"]
-            adv = delta + config.gamma * config.gae_lambda * not_done * next_adv
-            return (adv, t["value"]), adv
-
-        _, adv = jax.lax.scan(gae, (jnp.zeros_like(last_value), last_value), traj, reverse=True)
+        next_values = jnp.concatenate([traj["value"][1:], last_value[None]], axis=0)
+        continues = 1.0 - traj["done"].astype(jnp.float32)
+        adv = gae(traj["reward"], traj["value"], next_values, continues, config.gamma, config.gae_lambda)
         flat = jax.tree.map(lambda x: x.reshape((-1, *x.shape[2:])),
                             {"obs": traj["obs"], "action": traj["action"], "log_prob": traj["log_prob"],
                              "value": traj["value"], "adv": adv, "target": adv + traj["value"]})

@@ -12,8 +12,9 @@ import numpy as np
 from jaxdeconf.config import Config
 
 # Which exact reference each algorithm should match on the bandit (see the paper, section 5.1).
-TARGET = {"bc": "conditional", "dil": "interventional", "oracle": "expert"}
-COLORS = {"bc": "tab:red", "oracle": "tab:green", "dil": "tab:blue"}
+TARGET = {"bc": "conditional", "dil": "interventional", "oracle": "expert", "dagger": "interventional"}
+COLORS = {"bc": "tab:red", "oracle": "tab:green", "dil": "tab:blue", "dagger": "tab:purple", "gail": "tab:orange"}
+SMOOTH = 5  # Sliding window (evaluations) of comparison.png, as in the paper's figures.
 
 
 def load_metrics(folder: pathlib.Path, algo: str) -> list[dict[str, Any]]:
@@ -65,7 +66,23 @@ def summarize(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None)
                 row[f"max_dev_online_vs_{kind}"] = float(np.max(np.abs(online - refs[f"{kind}_online"])))
                 row[f"max_dev_expert_vs_{kind}"] = float(np.max(np.abs(expert - refs[f"{kind}_expert"])))
         table.append(row)
+    add_gap_closed(table, folder)
     return table
+
+
+def add_gap_closed(table: list[dict[str, Any]], folder: pathlib.Path) -> None:
+    """Add, when bc and the oracle are both in ``table``, each algorithm's share of the bc-to-oracle gap it closes,
+    (return - bc) / (oracle - bc), at the final evaluation and averaged over the last four."""
+    names = {row["algo"] for row in table}
+    if not {"bc", "oracle"} <= names:
+        return
+    last4 = {name: float(np.nanmean(eval_table(load_metrics(folder, name), "eval_return")[1][:, -4:]))
+             for name in names}
+    final = {row["algo"]: row["return_mean"] for row in table}
+    for row in table:
+        name = row["algo"]
+        row["gap_closed"] = (final[name] - final["bc"]) / (final["oracle"] - final["bc"])
+        row["gap_closed_last4"] = (last4[name] - last4["bc"]) / (last4["oracle"] - last4["bc"])
 
 
 def write_summary(folder: pathlib.Path, table: list[dict[str, Any]], refs: dict[str, Any] | None) -> str:
@@ -111,10 +128,9 @@ def plot(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> l
         for kind, style in (("expert", ":"), ("interventional", "--"), ("conditional", "-.")):
             ax.axhline(refs[f"{kind}_count"], color="k", ls=style, lw=1, label=f"exact {kind}")
     else:  # The MDPs: the expert's mean return over every episode it demonstrated during training.
-        demos = [r["expert_return"] for algo in config.algos for r in load_metrics(folder, algo)
-                 if "expert_return" in r]
-        if demos:
-            ax.axhline(float(np.mean(demos)), color="k", ls=":", lw=1, label="expert (demonstrations)")
+        demo = expert_demo_return(folder, config)
+        if demo is not None:
+            ax.axhline(demo, color="k", ls=":", lw=1, label="expert (demonstrations)")
     ax.set_xlabel("iteration")
     ax.set_ylabel("best-arm count per episode" if refs is not None else "return")
     ax.set_title(f"{config.env}: mean ± s.e. over {config.seeds} seeds")
@@ -124,6 +140,7 @@ def plot(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> l
     plt.close(fig)
     written.append(folder / "learning_curves.png")
 
+    written.append(plot_comparison(folder, config, refs))
     if refs is None:
         return written
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
@@ -147,3 +164,52 @@ def plot(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> l
     plt.close(fig)
     written.append(folder / "p_best.png")
     return written
+
+
+def smooth(x: np.ndarray, window: int) -> np.ndarray:
+    """Trailing moving average along the last axis over up to ``window`` points (shorter at the start)."""
+    csum = np.cumsum(np.nan_to_num(x), axis=-1)
+    out = np.empty_like(csum, dtype=float)
+    for i in range(x.shape[-1]):
+        lo = max(0, i - window + 1)
+        out[..., i] = (csum[..., i] - (csum[..., lo - 1] if lo else 0.0)) / (i - lo + 1)
+    return out
+
+
+def expert_demo_return(folder: pathlib.Path, config: Config) -> float | None:
+    """The expert's mean return over every episode it demonstrated during training, or None."""
+    demos = [r["expert_return"] for algo in config.algos for r in load_metrics(folder, algo) if "expert_return" in r]
+    return float(np.mean(demos)) if demos else None
+
+
+def plot_comparison(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> pathlib.Path:
+    """comparison.png in the paper's style: return over iterations, each seed smoothed over ``SMOOTH`` evaluations,
+    mean ± standard error over seeds, one line per algorithm, the expert's return as a reference line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for algo in config.algos:
+        rows = load_metrics(folder, algo)
+        if rows:
+            iters, returns = eval_table(rows, "eval_return")
+            m, se = mean_se(smooth(returns, SMOOTH))
+            ax.plot(iters, m, label=algo, color=COLORS.get(algo))
+            ax.fill_between(iters, m - se, m + se, alpha=0.2, color=COLORS.get(algo))
+    expert = refs["expert_count"] if refs is not None else expert_demo_return(folder, config)
+    if expert is not None:
+        ax.axhline(float(expert), color="k", ls=":", lw=1, label="expert")
+    if refs is not None:
+        for kind, style in (("interventional", "--"), ("conditional", "-.")):
+            ax.axhline(refs[f"{kind}_count"], color="gray", ls=style, lw=1, label=f"exact {kind}")
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("best-arm count per episode" if refs is not None else "return")
+    ax.set_title(f"{config.env}: mean ± s.e. over {config.seeds} seeds, window {SMOOTH}")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    path = folder / "comparison.png"
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

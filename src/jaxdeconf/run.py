@@ -20,7 +20,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     """Command-line flags."""
     p = argparse.ArgumentParser(prog="python -m jaxdeconf.run", description=__doc__)
     p.add_argument("--env", default="bandit", help="environment name (default: bandit)")
-    p.add_argument("--algo", default="bc,dil", help=f"comma-separated algorithms from {', '.join(cfg.ALGOS)}")
+    p.add_argument("--algo", default="bc,dil",
+                   help=f"comma-separated algorithms from {', '.join(cfg.ALGOS)}, or all")
     p.add_argument("--seeds", type=int, default=10, help="number of seeds, trained together in one program")
     p.add_argument("--preset", default="cpu", help="preset of the environment (cpu, paper)")
     p.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
@@ -84,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.jobs < 0:
             raise ConfigError(f"--jobs={args.jobs} is not allowed: need 0 (automatic) or a positive integer")
-        algos = tuple(a.strip() for a in args.algo.split(",") if a.strip())
+        algos = cfg.ALGOS if args.algo.strip() == "all" else tuple(a.strip() for a in args.algo.split(",") if a.strip())
         config = cfg.build(args.env, args.preset, algos, args.seeds, parse_overrides(args.set))
         from jaxdeconf.envs import make
 

@@ -14,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from jaxdeconf.algos import Algorithm, TrainState, make_algorithm
+from jaxdeconf.algos import make_algorithm
+from jaxdeconf.algos.base import Algorithm, TrainState
 from jaxdeconf.checkpoint import Checkpoints
 from jaxdeconf.config import Config
 from jaxdeconf.envs import make

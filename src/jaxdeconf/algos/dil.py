@@ -1,0 +1,151 @@
+"""Deconfounded imitation learning (Algorithm 1): q_phi by the sequential ELBO on the imitator's own episodes, then
+a latent-conditional policy cloned on expert episodes with θ-hat inferred by q_phi; Algorithm 2 at test time."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from jaxdeconf import losses
+from jaxdeconf.actors import DeconfoundedActor
+from jaxdeconf.algos.base import (
+    Algorithm,
+    Learner,
+    TrainState,
+    apply_gradients,
+    make_optimizer,
+    observation_delta_scale,
+)
+from jaxdeconf.data import Trajectory, buffer_add, buffer_sample, rollout
+from jaxdeconf.models import Decoder, Encoder, EvidenceEncoder, LatentPolicy, action_features, head_size
+
+
+@dataclasses.dataclass(frozen=True)
+class Deconfounded(Algorithm):
+    """Algorithm 1: an inference model trained by the sequential ELBO on the imitator's own episodes, and a
+    latent-conditional policy cloned on expert episodes with θ-hat = the posterior mean at the current step.
+
+    For Gaussian observation likelihoods the decoder predicts standardised one-step changes of the observation; the
+    per-dimension scale is fixed once from expert data (``delta_scale``), as the paper normalises from expert data.
+    """
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "delta_scale", observation_delta_scale(self.env, self.env_params)
+                           if self.env.obs_likelihood == "gaussian" else None)
+
+    @property
+    def encoder_scale(self) -> Any:
+        """The delta scale when the encoder reads standardised changes (``model.encoder_deltas``), else None."""
+        return self.delta_scale if self.config.model.encoder_deltas else None
+
+    def encoder_obs(self, obs: jax.Array) -> jax.Array:
+        """What q_phi reads along a sequence obs [T, B, d]: obs, or ``losses.transition_inputs``."""
+        scale = self.encoder_scale
+        return obs if scale is None else losses.transition_inputs(obs, scale)
+
+    @property
+    def networks(self) -> tuple[Encoder | EvidenceEncoder, Decoder, LatentPolicy]:
+        """Encoder q_phi, decoder p_psi and policy pi_eta."""
+        m = self.config.model
+        size = self.env.obs_sizes(self.env_params).imitator
+        return (
+            Encoder(m.width, m.action_embed, m.gru, m.latent) if m.encoder == "gru"
+            else EvidenceEncoder(m.width, m.action_embed, m.latent),
+            Decoder(m.width, m.action_embed, size),
+            LatentPolicy(m.width, head_size(self.space)),
+        )
+
+    @property
+    def encoder_tx(self) -> optax.GradientTransformation:
+        """Inference-model optimiser."""
+        t = self.config.train
+        return make_optimizer(t.encoder_lr, t.weight_decay, t.encoder_clip)
+
+    def init(self, key: jax.Array) -> TrainState:
+        """Fresh encoder, decoder and policy; expert and exploration buffers."""
+        key, k_enc, k_dec, k_pol = jax.random.split(key, 4)
+        encoder, decoder, policy = self.networks
+        size, latent = self.env.obs_sizes(self.env_params).imitator, self.config.model.latent
+        obs, act, z = jnp.zeros((1, size)), jnp.zeros((1, self.space.feature_size)), jnp.zeros((1, latent))
+        enc_obs = self.encoder_obs(obs[None])[0]
+        enc_params = {"encoder": encoder.init(k_enc, enc_obs, act), "decoder": decoder.init(k_dec, z, obs, act)}
+        pol_params = policy.init(k_pol, obs, z)
+        return TrainState(
+            policy=Learner(pol_params, self.policy_tx.init(pol_params)),
+            encoder=Learner(enc_params, self.encoder_tx.init(enc_params)),
+            expert_buffer=self._empty_buffer(),
+            explore_buffer=self._empty_buffer(),
+            key=key,
+            iteration=jnp.zeros((), jnp.int32),
+        )
+
+    def actor(self) -> DeconfoundedActor:
+        """Algorithm 2."""
+        encoder, _, policy = self.networks
+        return DeconfoundedActor(encoder, policy, self.encoder_scale)
+
+    def actor_params(self, state: TrainState) -> dict[str, Any]:
+        """Encoder and policy parameters."""
+        return {"encoder": state.encoder.params["encoder"], "policy": state.policy.params}
+
+    def collect_explore(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
+        """The imitator's own episodes (the exploration policy is pi_eta on the current posterior mean)."""
+        n = self.config.train.episodes_per_iter
+        traj, _ = rollout(self.env, self.env_params, self.actor(), self.actor_params(state), key, n)
+        state = state.replace(explore_buffer=buffer_add(state.explore_buffer, traj))
+        return state, {"train_return": jnp.mean(jnp.sum(traj.reward, axis=0))}
+
+    def update_encoder(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
+        """``encoder_steps`` ELBO steps on batches of whole exploration episodes."""
+        t = self.config.train
+        encoder, decoder, _ = self.networks
+        loss_fn = functools.partial(
+            losses.elbo_loss,
+            encoder=encoder,
+            decoder=decoder,
+            beta=t.beta,
+            steps=t.prediction_steps,
+            likelihood=self.env.obs_likelihood,
+            delta_scale=self.delta_scale,
+            encoder_delta_scale=self.encoder_scale,
+        )
+        grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
+
+        def step(learner: Learner, step_key: jax.Array) -> tuple[Learner, dict[str, jax.Array]]:
+            k_batch, k_noise = jax.random.split(step_key)
+            batch = buffer_sample(state.explore_buffer, k_batch, t.batch_size)
+            feats = action_features(self.space, batch.action)
+            (loss, metrics), grads = grad_fn(learner.params, batch.obs.imitator, feats, batch.valid, k_noise)
+            return apply_gradients(learner, grads, self.encoder_tx), {"elbo_loss": loss, **metrics}
+
+        learner, metrics = jax.lax.scan(step, state.encoder, jax.random.split(key, t.encoder_steps))
+        return state.replace(encoder=learner), jax.tree.map(jnp.mean, metrics)
+
+    def posterior_means(self, state: TrainState, traj: Trajectory) -> jax.Array:
+        """Posterior means [T, B, L] of q_phi along ``traj``, detached: the policy never trains the encoder."""
+        encoder, _, _ = self.networks
+        obs = self.encoder_obs(traj.obs.imitator[: traj.horizon])
+        prev = losses.prev_actions(action_features(self.space, traj.action))
+        mean, _ = losses.encoder_scan(encoder, state.encoder.params["encoder"], obs, prev)
+        return jax.lax.stop_gradient(mean)
+
+    def policy_context(self, state: TrainState) -> jax.Array | None:
+        """The encoder is frozen during the policy steps, so when the policy steps would encode at least as many
+        episodes as the buffer holds, encoding the whole buffer once gives the same latents for less work."""
+        t = self.config.train
+        if t.buffer_episodes > t.batch_size * t.policy_steps:
+            return None
+        return self.posterior_means(state, state.expert_buffer.data)
+
+    def policy_outputs(
+        self, policy_params: Any, state: TrainState, traj: Trajectory, context: jax.Array | None = None
+    ) -> jax.Array:
+        """pi_eta(a_t | s_t, mean of q_phi(. | tau_{:t})) with the encoder frozen (detached)."""
+        _, _, policy = self.networks
+        mean = self.posterior_means(state, traj) if context is None else context
+        return policy.apply(policy_params, traj.obs.imitator[: traj.horizon], mean)

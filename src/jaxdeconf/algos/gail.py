@@ -1,0 +1,206 @@
+"""GAIL (Ho and Ermon, 2016) with a recurrent PPO generator.
+
+The generator is a GRU actor and a GRU critic, each on the imitator's view and the previous action (bc's network).
+Each iteration it rolls out ``gail.rollout_factor`` times the other algorithms' episodes; the discriminator (an MLP on
+s', or on (s, a, s') with ``gail.disc_input=transition``) takes ``gail.disc_steps`` BCE steps separating expert from
+generator transitions; the generator's reward is -log(1 - D) = softplus(logit); then PPO (clipped surrogate, GAE,
+normalised advantages) runs ``gail.epochs`` epochs over minibatches of whole episodes. Recurrent PPO replays each
+episode from its first step with a zero GRU state, exactly as it was rolled out, so before the first update the
+probability ratio is 1; episodes have a fixed horizon, and steps after termination are masked out of every loss.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from jaxdeconf import losses
+from jaxdeconf.actors import RecurrentActor
+from jaxdeconf.algos.base import Algorithm, Learner, TrainState, apply_gradients
+from jaxdeconf.data import Tagged, Trajectory, buffer_add, buffer_sample, rollout_with_outputs
+from jaxdeconf.models import Discriminator, RecurrentPolicy, action_features, entropy, head_size, log_prob
+from jaxdeconf.ppo import clipped_surrogate, gae, normalize_advantages, squared_value_error
+
+
+def discriminator_features(traj: Trajectory, space: Any, kind: str) -> jax.Array:
+    """What the discriminator reads at each step [T, B, f]: s' ("next") or (s, a, s') ("transition")."""
+    obs = traj.obs.imitator
+    if kind == "next":
+        return obs[1:]
+    return jnp.concatenate([obs[:-1], action_features(space, traj.action), obs[1:]], axis=-1)
+
+
+def discriminator_loss(
+    expert_logits: jax.Array, expert_valid: jax.Array, gen_logits: jax.Array, gen_valid: jax.Array
+) -> jax.Array:
+    """Binary cross-entropy, expert = 1 and generator = 0, each the mean over its valid steps:
+    mean(-log D(expert)) + mean(-log(1 - D(generator))) with D = sigmoid(logit)."""
+    return losses.masked_mean(jax.nn.softplus(-expert_logits), expert_valid) + losses.masked_mean(
+        jax.nn.softplus(gen_logits), gen_valid)
+
+
+def gail_reward(logits: jax.Array) -> jax.Array:
+    """The generator's reward -log(1 - D) = softplus(logit)."""
+    return jax.nn.softplus(logits)
+
+
+def next_step_values(values: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(V of the state after step t, whether the episode goes on after step t) for fixed-horizon episodes [T, B]:
+    an episode goes on while its next step is valid, and ends at the horizon."""
+    next_values = jnp.concatenate([values[1:], jnp.zeros_like(values[:1])], axis=0)
+    continues = jnp.concatenate([valid[1:], jnp.zeros_like(valid[:1])], axis=0).astype(jnp.float32)
+    return next_values, continues
+
+
+@dataclasses.dataclass(frozen=True)
+class GAIL(Algorithm):
+    """Adversarial imitation: the generator never sees the expert's actions, only the discriminator's reward."""
+
+    @property
+    def networks(self) -> tuple[RecurrentPolicy, RecurrentPolicy, Discriminator]:
+        """Actor, critic and discriminator."""
+        m = self.config.model
+        return (RecurrentPolicy(m.width, m.action_embed, m.bc_gru, head_size(self.space)),
+                RecurrentPolicy(m.width, m.action_embed, m.bc_gru, 1), Discriminator(m.width))
+
+    @property
+    def policy_tx(self) -> optax.GradientTransformation:
+        """Generator optimiser: Adam behind a global-norm clip."""
+        g = self.config.gail
+        return optax.chain(optax.clip_by_global_norm(g.max_grad_norm), optax.adam(g.lr))
+
+    @property
+    def disc_tx(self) -> optax.GradientTransformation:
+        """Discriminator optimiser."""
+        return optax.adam(self.config.gail.disc_lr)
+
+    @property
+    def generator_episodes(self) -> int:
+        """Generator episodes per iteration."""
+        return self.config.gail.rollout_factor * self.config.train.episodes_per_iter
+
+    def init(self, key: jax.Array) -> TrainState:
+        """Fresh actor, critic and discriminator; the expert buffer and a buffer for one iteration's rollouts."""
+        key, k_actor, k_critic, k_disc = jax.random.split(key, 4)
+        actor, critic, disc = self.networks
+        size = self.env.obs_sizes(self.env_params).imitator
+        obs, act = jnp.zeros((1, size)), jnp.zeros((1, self.space.feature_size))
+        gen = {"actor": actor.init(k_actor, obs, act), "critic": critic.init(k_critic, obs, act)}
+        example = self.example_episode()
+        disc_params = disc.init(k_disc, self.disc_features(example)[0])
+        tagged = Tagged(traj=example, tags={"log_prob": jnp.zeros(example.valid.shape, jnp.float32)})
+        return TrainState(
+            policy=Learner(gen, self.policy_tx.init(gen)),
+            encoder=Learner(disc_params, self.disc_tx.init(disc_params)),
+            expert_buffer=self._empty_buffer(),
+            explore_buffer=self._empty_buffer(tagged, self.generator_episodes),
+            key=key,
+            iteration=jnp.zeros((), jnp.int32),
+        )
+
+    def disc_features(self, traj: Trajectory) -> jax.Array:
+        """``discriminator_features`` with this config's input."""
+        return discriminator_features(traj, self.space, self.config.gail.disc_input)
+
+    def actor(self) -> RecurrentActor:
+        """The GRU actor on the imitator's view."""
+        return RecurrentActor(self.networks[0], "imitator")
+
+    def actor_params(self, state: TrainState) -> Any:
+        """The actor's parameters."""
+        return state.policy.params["actor"]
+
+    def policy_outputs(
+        self, policy_params: Any, state: TrainState, traj: Trajectory, context: jax.Array | None = None
+    ) -> jax.Array:
+        """The actor's head outputs [T, B, ...] replayed along ``traj`` from a zero GRU state."""
+        del state, context  # Unused.
+        return self._scan(self.networks[0], policy_params["actor"], traj)
+
+    def values(self, gen_params: Any, traj: Trajectory) -> jax.Array:
+        """The critic's values [T, B] replayed along ``traj``."""
+        return self._scan(self.networks[1], gen_params["critic"], traj)[..., 0]
+
+    def _scan(self, network: RecurrentPolicy, params: Any, traj: Trajectory) -> jax.Array:
+        """A recurrent network over the imitator's view and the previous actions of ``traj``."""
+        prev = losses.prev_actions(action_features(self.space, traj.action))
+        return losses.recurrent_policy_scan(network, params, traj.obs.imitator[: traj.horizon], prev)
+
+    def collect_explore(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
+        """Generator rollouts, with the log-probability of each action as it was taken."""
+        traj, _, out = rollout_with_outputs(
+            self.env, self.env_params, self.actor(), self.actor_params(state), key, self.generator_episodes)
+        tagged = Tagged(traj=traj, tags={"log_prob": log_prob(self.space, out, traj.action)})
+        state = state.replace(explore_buffer=buffer_add(state.explore_buffer, tagged))
+        return state, {"train_return": jnp.mean(jnp.sum(traj.reward, axis=0))}
+
+    def update_encoder(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
+        """``gail.disc_steps`` discriminator steps on batches of expert and generator episodes."""
+        grad_fn = jax.value_and_grad(self._disc_loss)
+
+        def step(learner: Learner, step_key: jax.Array) -> tuple[Learner, jax.Array]:
+            k_expert, k_gen = jax.random.split(step_key)
+            expert = buffer_sample(state.expert_buffer, k_expert, self.config.train.batch_size)
+            gen = buffer_sample(state.explore_buffer, k_gen, self.config.train.batch_size).traj
+            loss, grads = grad_fn(learner.params, expert, gen)
+            return apply_gradients(learner, grads, self.disc_tx), loss
+
+        keys = jax.random.split(key, self.config.gail.disc_steps)
+        learner, loss = jax.lax.scan(step, state.encoder, keys)
+        return state.replace(encoder=learner), {"disc_loss": jnp.mean(loss)}
+
+    def _disc_loss(self, params: Any, expert: Trajectory, gen: Trajectory) -> jax.Array:
+        """``discriminator_loss`` on two batches."""
+        disc = self.networks[2]
+        return discriminator_loss(disc.apply(params, self.disc_features(expert)), expert.valid,
+                                  disc.apply(params, self.disc_features(gen)), gen.valid)
+
+    def rewards(self, state: TrainState, traj: Trajectory) -> jax.Array:
+        """The generator's reward per step [T, B]: the discriminator's, or the env's with ``gail.reward=env``."""
+        if self.config.gail.reward == "env":
+            return traj.reward
+        logits = self.networks[2].apply(state.encoder.params, self.disc_features(traj))
+        return gail_reward(logits) * traj.valid
+
+    def advantages(self, state: TrainState, traj: Trajectory) -> tuple[jax.Array, jax.Array]:
+        """GAE advantages and value targets [T, B] of the generator's rollouts under the current critic."""
+        g = self.config.gail
+        values = self.values(state.policy.params, traj)
+        next_values, continues = next_step_values(values, traj.valid)
+        adv = gae(self.rewards(state, traj), values, next_values, continues, g.gamma, g.gae_lambda)
+        return adv, adv + values
+
+    def ppo_loss(self, gen_params: Any, batch: Tagged) -> tuple[jax.Array, dict[str, jax.Array]]:
+        """Clipped surrogate + value_coef x critic error - entropy_coef x entropy, over valid steps."""
+        g, traj = self.config.gail, batch.traj
+        out = self.policy_outputs(gen_params, None, traj)
+        adv = normalize_advantages(batch.tags["adv"], traj.valid)
+        surrogate = clipped_surrogate(log_prob(self.space, out, traj.action), batch.tags["log_prob"], adv,
+                                      g.clip_eps, traj.valid)
+        value_loss = squared_value_error(self.values(gen_params, traj), batch.tags["target"], traj.valid)
+        ent = losses.masked_mean(entropy(self.space, out), traj.valid)
+        total = surrogate + g.value_coef * value_loss - g.entropy_coef * ent
+        return total, {"policy_loss": surrogate, "value_loss": value_loss, "entropy": ent}
+
+    def update_policy(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
+        """PPO: ``gail.epochs`` passes over this iteration's rollouts in minibatches of whole episodes."""
+        g = self.config.gail
+        data = state.explore_buffer.data
+        adv, target = self.advantages(state, data.traj)
+        data = data.replace(tags={**data.tags, "adv": adv, "target": target})
+        grad_fn = jax.value_and_grad(self.ppo_loss, has_aux=True)
+
+        def minibatch(learner: Learner, idx: jax.Array) -> tuple[Learner, dict[str, jax.Array]]:
+            (_, metrics), grads = grad_fn(learner.params, jax.tree.map(lambda d: d[:, idx], data))
+            return apply_gradients(learner, grads, self.policy_tx), metrics
+
+        def epoch(learner: Learner, epoch_key: jax.Array) -> tuple[Learner, dict[str, jax.Array]]:
+            order = jax.random.permutation(epoch_key, self.generator_episodes).reshape(g.minibatches, -1)
+            return jax.lax.scan(minibatch, learner, order)
+
+        learner, metrics = jax.lax.scan(epoch, state.policy, jax.random.split(key, g.epochs))
+        return state.replace(policy=learner), jax.tree.map(jnp.mean, metrics)
