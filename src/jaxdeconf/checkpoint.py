@@ -34,6 +34,10 @@ class Checkpoints:
         """Iterations done in the newest checkpoint, or None."""
         return self.manager.latest_step()
 
+    def all_steps(self) -> list[int]:
+        """Iterations done in every kept checkpoint."""
+        return list(self.manager.all_steps())
+
     def save(self, step: int, state: Any) -> None:
         """Write a checkpoint (atomically: orbax renames a finished temporary folder)."""
         self.manager.save(step, args=ocp.args.StandardSave(_to_raw(state)))
