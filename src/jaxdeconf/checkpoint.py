@@ -27,7 +27,8 @@ class Checkpoints:
     def __init__(self, directory: pathlib.Path) -> None:
         """Open (or create lazily) the checkpoint folder."""
         self.directory = pathlib.Path(directory).absolute()
-        options = ocp.CheckpointManagerOptions(max_to_keep=2, create=True)
+        # A kill during a save leaves orbax's temporary folder behind (never a half checkpoint): delete it on start.
+        options = ocp.CheckpointManagerOptions(max_to_keep=2, create=True, cleanup_tmp_directories=True)
         self.manager = ocp.CheckpointManager(self.directory, options=options)
 
     def latest_step(self) -> int | None:

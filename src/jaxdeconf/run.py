@@ -91,7 +91,7 @@ def _foreign(folder: pathlib.Path) -> list[str]:
     return out
 
 
-def _check_out(folder: pathlib.Path, overwrite: bool) -> None:
+def _check_out(folder: pathlib.Path) -> None:
     """Refuse an --out that is a file, or a folder of someone else's files (with or without --overwrite)."""
     if folder.exists() and not folder.is_dir():
         raise ConfigError(f"--out {folder} is a file, not a folder; use another --out")
@@ -101,17 +101,18 @@ def _check_out(folder: pathlib.Path, overwrite: bool) -> None:
     if not folder.exists():
         return
     foreign = _foreign(folder)
-    if foreign or (overwrite and any(folder.iterdir()) and not (folder / "config.json").exists()):
+    ours = [p for p in folder.iterdir() if p.name != LOCK_NAME and not p.name.startswith(TMP_PREFIX)]
+    if foreign or (ours and not (folder / "config.json").exists()):
         what = f"holds files this tool did not write ({', '.join(foreign[:3])})" if foreign else \
-            "is not a results folder (no config.json)"
+            "is not empty and has no config.json"
         raise ConfigError(f"results folder {folder} {what}; nothing was changed: use another --out"
-                          + (" (--overwrite only deletes results folders this tool wrote)" if overwrite else ""))
+                          + (" (--overwrite only deletes results folders this tool wrote)" if foreign else ""))
 
 
 def prepare_folder(folder: pathlib.Path, config: cfg.Config, overwrite: bool) -> FolderLock:
     """Create the results folder, or check an existing one holds the same config (never clobber results); return the
     folder's lock, held until this process exits."""
-    _check_out(folder, overwrite)
+    _check_out(folder)
     with writable(folder):
         folder.mkdir(parents=True, exist_ok=True)
         lock = FolderLock(folder, command_line())
@@ -351,8 +352,8 @@ def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0) -
     cores = available_cores()
     pin_to_core(cores[0])  # The exact references below run here, in this process.
     _check_writable(folder, config.algos)
+    queue = [algo for algo in config.algos if not _finished(config, folder, algo)]  # Damaged files: before any work.
     refs = _references(config, folder)
-    queue = [algo for algo in config.algos if not _finished(config, folder, algo)]
     codes = _train_workers(folder, queue, cores, jobs or len(cores), quiet)
     if 2 in codes.values():
         return 2  # A worker already printed its one-line error.
