@@ -43,6 +43,7 @@ BAD_INPUTS = [
     (["--no-such-flag"], "unrecognized arguments: --no-such-flag"),
     (["--out", ""], "--out is empty"),
     (["--out", " "], "--out is empty"),
+    (["--out", "/sys/jaxdeconf-results"], "cannot write /sys/jaxdeconf-results: "),  # A read-only file system.
     (["--set", "train.iterations=-3"], "train.iterations=-3 is not allowed: need a positive integer"),
     (["--set", f"train.iterations={10**12}"], "train.iterations=1000000000000 is too large: need at most 2147483647"),
     (["--set", "train.chunk=0"], "train.chunk=0 is not allowed"),
@@ -136,6 +137,15 @@ def test_bad_paths_and_damaged_files(tmp_path, capfd):
     with (tmp_path / "rows_twice" / "bc" / "metrics.jsonl").open("a") as f:
         f.write(json.dumps({"algo": "bc", "seed": 0, "iteration": 4}) + "\n")
     _bad(capfd, argv, "(some twice)")
+
+    # A checkpoint folder the workers could not write (orbax would retry for minutes) is refused at once.
+    argv = _finished_bc(tmp_path / "read_only", rows=8)
+    (tmp_path / "read_only" / "bc" / "DONE").unlink()
+    (tmp_path / "read_only" / "bc" / "checkpoints").mkdir()
+    real_access = os.access
+    with pytest.MonkeyPatch.context() as mp:  # Tests may run as root, for whom chmod does not stop writes.
+        mp.setattr(os, "access", lambda p, mode: not str(p).endswith("checkpoints") and real_access(p, mode))
+        _bad(capfd, argv, "bc/checkpoints: permission denied; make it writable, or use another --out")
 
     # The same config with an env parameter spelled differently is the same config.
     _results_folder(tmp_path / "typed")
