@@ -179,9 +179,11 @@ def main(argv: list[str] | None = None) -> int:
         args = parse_args(argv)
         if args.worker is not None:
             return _worker(args)
-        config, folder = _setup(args)
-        lock = prepare_folder(folder, config, args.overwrite)
+        # The exact references and the memory check run JAX here, in this process: on one core, like every worker.
+        pin_to_core(available_cores()[0])
         with _signals_raise():
+            config, folder = _setup(args)
+            lock = prepare_folder(folder, config, args.overwrite)
             try:
                 return _run(config, folder, quiet=args.quiet, jobs=args.jobs)
             finally:
@@ -350,7 +352,6 @@ def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0) -
     from jaxdeconf import results
 
     cores = available_cores()
-    pin_to_core(cores[0])  # The exact references below run here, in this process.
     _check_writable(folder, config.algos)
     queue = [algo for algo in config.algos if not _finished(config, folder, algo)]  # Damaged files: before any work.
     refs = _references(config, folder)
