@@ -175,7 +175,7 @@ def test_non_finite_loss_stops_with_one_line(tiny_config):
     with pytest.raises(DivergedError, match=r"elbo_loss is inf at iteration 1 for seed\(s\) 0"):
         check_finite("dil", config, 0, {"elbo_loss": np.array([[np.inf, 1.0], [1.0, 1.0], [1.0, 1.0]])}, evals)
     with pytest.raises(DivergedError, match=r"eval_return is nan at iteration 2 for seed\(s\) 2"):
-        check_finite("dil", config, 0, {}, {**evals, "eval_return": np.array([1.0, 1.0, nan])})
+        check_finite("dil", config, 0, {"loss": np.ones((3, 2))}, {**evals, "eval_return": np.array([1, 1, nan])})
 
 
 @pytest.mark.slow

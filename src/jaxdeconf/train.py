@@ -66,11 +66,16 @@ def check_finite(name: str, config: Config, start: int, per_iter: dict, evals: d
 
     Policy losses are NaN by design during warm-up (no policy update yet), so NaN counts only after it.
     """
+    length = next(iter(per_iter.values())).shape[1] if per_iter else 1
     for key in sorted(k for k in {**per_iter, **evals} if "loss" in k or "return" in k):
-        value = np.asarray(per_iter[key] if key in per_iter else np.asarray(evals[key])[:, None], np.float64)
-        first = start + 1 if key in per_iter else start + value.shape[1]  # Evals belong to a chunk's last iteration.
-        iteration = first + np.arange(value.shape[1])
-        bad = np.isinf(value) | (np.isnan(value) & (iteration > config.train.warmup)[None])
+        if key in per_iter:
+            value = np.asarray(per_iter[key], np.float64)  # [seeds, length]
+            iteration = start + 1 + np.arange(length)
+            bad = np.isinf(value) | (np.isnan(value) & (iteration > config.train.warmup)[None])
+        else:  # An evaluation belongs to its chunk's last iteration, and is never NaN by design.
+            value = np.asarray(evals[key], np.float64)[:, None]
+            iteration = np.array([start + length])
+            bad = ~np.isfinite(value)
         if bad.any():
             seeds = [config.seed_start + s for s in np.flatnonzero(bad.any(axis=1))]
             raise DivergedError(
