@@ -214,3 +214,32 @@ def test_signal_stops_workers_with_one_line(tmp_path, signum):
                                         "checkpointed: run the same command again to resume"], err
     with pytest.raises(ProcessLookupError):
         os.kill(worker, 0)  # No orphan left.
+
+
+def test_resume_metrics_drops_exactly_the_rows_past_the_checkpoint(tmp_path, tiny_config):
+    """Rows past the checkpoint, a partial last line and garbage go (by an atomic rewrite); missing rows are an
+    error naming the file; rows are strict JSON (NaN written as null)."""
+    from jaxdeconf.config import ConfigError
+    from jaxdeconf.files import append_lines, dumps_row, read_rows
+    from jaxdeconf.train import resume_metrics
+
+    config = tiny_config(seeds=2)
+    path = tmp_path / "metrics.jsonl"
+    rows = [{"algo": "bc", "seed": s, "iteration": i, "policy_loss": float("nan") if i == 1 else 0.5}
+            for i in (1, 2, 3) for s in (0, 1)]
+    append_lines(path, [dumps_row(r) for r in rows])
+    kept = path.read_text().splitlines()[:4]  # Iterations 1 and 2.
+    for line in path.read_text().splitlines():
+        json.loads(line, parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}"))
+    with path.open("a") as f:
+        f.write('not json\n{"algo": "bc", "seed": 0, "itera')  # Garbage, then what a kill mid-append leaves.
+    inode = path.stat().st_ino
+    resume_metrics(path, config, "bc", done=2)
+    assert path.read_text().splitlines() == kept
+    assert path.stat().st_ino != inode  # Replaced by a new file, not rewritten in place.
+    assert np.isnan(read_rows(path)[0]["policy_loss"]) and read_rows(path)[3]["policy_loss"] == 0.5
+    inode = path.stat().st_ino
+    resume_metrics(path, config, "bc", done=2)  # Nothing to drop: the file is left alone.
+    assert path.stat().st_ino == inode and path.read_text().splitlines() == kept
+    with pytest.raises(ConfigError, match=r"metrics.jsonl is damaged: it holds 4 of the 6 rows of the 3 iterations"):
+        resume_metrics(path, config, "bc", done=3)
