@@ -319,14 +319,15 @@ def _check_field(name: str, value: Any, default: Any, allowed: Any) -> None:
 
 
 def _fields(section: Any, prefix: str = "") -> list[tuple[str, Any, Any, Any]]:
-    """(dotted name, value, default, allowed) of every ranged field, walking nested dataclass sections."""
+    """(dotted name, value, default, allowed or None) of every scalar field, walking nested dataclass sections: a
+    field without a stated range is still checked for its type, finiteness and the int32 bound."""
     out = []
     for f in dataclasses.fields(section):
         value = getattr(section, f.name)
         if dataclasses.is_dataclass(value):
             out += _fields(value, f"{prefix}{f.name}.")
-        elif "allowed" in f.metadata:
-            out.append((f"{prefix}{f.name}", value, f.default, f.metadata["allowed"]))
+        elif type(f.default) in (int, float, str, bool):
+            out.append((f"{prefix}{f.name}", value, f.default, f.metadata.get("allowed")))
     return out
 
 
