@@ -203,6 +203,7 @@ def test_memory_estimate_bounds_the_state(tiny_config):
         assert real <= guess.buffers + guess.params <= 20 * real, (name, real, guess)
 
 
+@pytest.mark.timeout(1200)  # Five runs of the CLI, three of which train.
 def test_run_then_protect_results(tmp_path, capfd):
     folder = tmp_path / "run"
     argv = ["--algo", "bc,dil", "--seeds", "2", "--out", str(folder), "--quiet", *TINY_ARGS]
