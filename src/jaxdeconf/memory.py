@@ -48,13 +48,14 @@ def estimate(config: Config, algo: str, env: Any, params: Any) -> Estimate:
     # Dense and GRU weights of the policy and (dil) of encoder and decoder, with AdamW's two moments: x3.
     hidden = 6 * m.width**2 + 6 * (m.gru + m.width) * m.gru + 6 * (m.bc_gru + m.width) * m.bc_gru
     param_bytes = 3 * 4 * hidden
-    # Per step of an episode in a gradient step or rollout: the stored step, GRU gates and MLP activations kept for
-    # the backward pass, and K decoder predictions.
-    per_step = 4 * (4 * (m.gru + m.bc_gru) + 6 * m.width + 2 * m.latent) * max(1, t.prediction_steps)
+    # Per step of an episode in a gradient step or rollout: GRU gates and MLP activations kept for the backward pass,
+    # and the decoder's K predictions of the next observations.
+    obs = env.obs_sizes(params).imitator
+    per_step = 4 * (4 * (m.gru + m.bc_gru) + 6 * m.width + 2 * m.latent + t.prediction_steps * (2 * m.width + obs))
     batch = max(t.batch_size, t.episodes_per_iter, t.eval_episodes)
     working = batch * (episode_bytes(env, params) + horizon * per_step)
     return Estimate(algo=algo, buffers=config.seeds * streams * t.buffer_episodes * episode_bytes(env, params),
-                    params=config.seeds * param_bytes, working=config.seeds * 2 * working)
+                    params=config.seeds * param_bytes, working=config.seeds * working)
 
 
 def device_memory() -> tuple[int, str]:
