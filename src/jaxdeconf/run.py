@@ -116,6 +116,17 @@ def prepare_folder(folder: pathlib.Path, config: cfg.Config, overwrite: bool) ->
     with writable(folder):
         folder.mkdir(parents=True, exist_ok=True)
         lock = FolderLock(folder, command_line())
+    try:
+        _fill_folder(folder, config, overwrite)
+    except BaseException:
+        lock.release()  # Refused: the folder is free again at once (main() may be called again in this process).
+        raise
+    return lock
+
+
+def _fill_folder(folder: pathlib.Path, config: cfg.Config, overwrite: bool) -> None:
+    """Under the lock: drop temporaries, empty the folder for --overwrite, then write or check config.json."""
+    with writable(folder):
         remove_temporaries(folder)
         if overwrite:
             for p in folder.iterdir():
@@ -126,7 +137,6 @@ def prepare_folder(folder: pathlib.Path, config: cfg.Config, overwrite: bool) ->
             _check_same_config(config_path, config)
         else:
             write_atomic(config_path, cfg.dumps(config) + "\n")  # Once: a restart never rewrites it.
-    return lock
 
 
 def _check_same_config(path: pathlib.Path, config: cfg.Config) -> None:
