@@ -138,14 +138,14 @@ def test_random_kills_resume_identically(tmp_path):
     argv = ["--algo", "bc,dil", "--seeds", "3", "--quiet", *[a for k, v in TINY.items() for a in ("--set", f"{k}={v}")]]
     cmd = [sys.executable, "-m", "jaxdeconf.run", *argv, "--out"]
     t0 = time.monotonic()
-    subprocess.run([*cmd, str(tmp_path / "whole")], env=_env(cache), timeout=900, check=True, capture_output=True)
+    subprocess.run([*cmd, str(tmp_path / "whole")], env=_env(cache), timeout=1800, check=True, capture_output=True)
     expected = results_of(tmp_path / "whole", ("bc", "dil"))
     # Kills uniform over a run's length, timed on a second run (the first also compiled into the cache).
     t1 = time.monotonic()
-    subprocess.run([*cmd, str(tmp_path / "timing")], env=_env(cache), timeout=900, check=True, capture_output=True)
+    subprocess.run([*cmd, str(tmp_path / "timing")], env=_env(cache), timeout=1800, check=True, capture_output=True)
     length = time.monotonic() - t1
     print(f"first run {t1 - t0:.1f} s, cached run {length:.1f} s")
-    for trial in range(20):
+    for trial in range(int(os.environ.get("KILL_TRIALS", "20"))):  # Fewer, to try the test on a busy machine.
         folder = tmp_path / f"kill{trial}"
         at = float(rng.uniform(0.5, length))
         proc = subprocess.Popen([*cmd, str(folder)], env=_env(cache), start_new_session=True,
@@ -157,7 +157,7 @@ def test_random_kills_resume_identically(tmp_path):
             proc.wait(timeout=60)
         state = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())[-3:]
         print(f"trial {trial}: kill at {at:.1f} s, exit {proc.returncode}, last files {state}")
-        subprocess.run([*cmd, str(folder)], env=_env(cache), timeout=900, check=True, capture_output=True)
+        subprocess.run([*cmd, str(folder)], env=_env(cache), timeout=1800, check=True, capture_output=True)
         assert results_of(folder, ("bc", "dil")) == expected, trial
 
 
