@@ -34,7 +34,7 @@ def _mixture_rollout(algo, state, beta, key, coin_key, episodes=64):
 
 def test_mixture_at_beta_one_and_zero_is_exactly_expert_and_imitator(tiny_config):
     algo = build_algorithm(tiny_config(), "dagger")
-    state = algo.init(jax.random.key(0))
+    state = jax.jit(algo.init)(jax.random.key(0))
     key, coin = jax.random.key(1), jax.random.key(2)
     expert = rollout(algo.env, algo.env_params, ExpertActor(algo.env, algo.env_params), None, key, 64)[0]
     imitator = rollout(algo.env, algo.env_params, algo.actor(), state.policy.params, key, 64)[0]
@@ -80,8 +80,8 @@ def test_beta_schedule():
 
 def test_dagger_labels_are_the_experts_action_probabilities(tiny_config):
     algo = build_algorithm(tiny_config(**{"dagger.anneal_iterations": "2"}), "dagger")
-    state = algo.init(jax.random.key(0))
-    state, metrics = algo.collect_expert(state, jax.random.key(1))
+    state = jax.jit(algo.init)(jax.random.key(0))
+    state, metrics = jax.jit(algo.collect_expert)(state, jax.random.key(1))
     assert float(metrics["beta"]) == 1.0
     data = state.expert_buffer.data
     n = int(state.expert_buffer.size)
@@ -155,14 +155,15 @@ def test_recurrent_ppo_replay_equals_rollout(tiny_config):
     """The log-probabilities replayed from a zero GRU state equal those recorded while acting: the first PPO
     minibatch of the first epoch sees a ratio of 1."""
     algo = build_algorithm(tiny_config(), "gail")
-    state = algo.init(jax.random.key(0))
-    state, _ = algo.collect_explore(state, jax.random.key(1))
+    state = jax.jit(algo.init)(jax.random.key(0))
+    state, _ = jax.jit(algo.collect_explore)(state, jax.random.key(1))
     data = state.explore_buffer.data
-    replayed = log_prob(algo.space, algo.policy_outputs(state.policy.params, state, data.traj), data.traj.action)
+    out = jax.jit(algo.policy_outputs)(state.policy.params, state, data.traj)
+    replayed = log_prob(algo.space, out, data.traj.action)
     ratio = np.exp(np.asarray(replayed) - np.asarray(data.tags["log_prob"]))
     np.testing.assert_allclose(ratio, 1.0, atol=1e-5)
     assert np.ptp(np.asarray(data.tags["log_prob"])) > 0.1  # A stochastic policy, so the check has teeth.
-    _, metrics = algo.update_policy(state, jax.random.key(2))
+    _, metrics = jax.jit(algo.update_policy)(state, jax.random.key(2))
     assert np.isfinite(float(metrics["policy_loss"]))
 
 

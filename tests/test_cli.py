@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import os
 import pathlib
 
+import numpy as np
 import pytest
 from conftest import TINY
 
@@ -13,7 +16,9 @@ TINY_ARGS = [arg for k, v in TINY.items() for arg in ("--set", f"{k}={v}")]
 
 
 def _snapshot(folder: pathlib.Path) -> dict[str, bytes]:
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+    """Every file's bytes, but the lock files' (each start writes its pid there)."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*"))
+            if p.is_file() and p.name != ".lock"}
 
 
 def _bad(capfd, argv, expected):
@@ -23,33 +28,190 @@ def _bad(capfd, argv, expected):
     assert err.startswith("error: ") and expected in err, err
 
 
+# Every kind of bad input a user can give: (arguments, what the one line must say). Each must end in exactly one
+# ``error:`` line on stderr and exit code 2, before anything is written or compiled.
+BAD_INPUTS = [
+    (["--env", "cartpole"], "unknown env 'cartpole'; allowed: ant_goal, bandit, half_cheetah, lunar_lander"),
+    (["--algo", "bc,sqil"], "unknown algorithm 'sqil'; allowed: bc, oracle, dil, dagger, gail"),
+    (["--set", "dagger.anneal_iterations=-1"], "dagger.anneal_iterations=-1 is not allowed: need an integer >= 0"),
+    (["--set", "gail.disc_steps=0"], "gail.disc_steps=0 is not allowed: need a positive integer"),
+    (["--set", "gail.lr=nan"], "gail.lr=nan is not allowed: need a finite number"),
+    (["--set", "gail.gamma=1.5"], "gail.gamma=1.5 is not allowed: need a number in [0, 1]"),
+    (["--set", "gail.disc_input=image"], "gail.disc_input='image' is not allowed; allowed: next, transition"),
+    (["--set", "gail.reward=sparse"], "gail.reward='sparse' is not allowed; allowed: discriminator, env"),
+    (["--set", "gail.minibatches=5"], "gail.minibatches=5 must divide the generator's 128 episodes"),
+    (["--set", "gail.nope=1"], "unknown field 'gail.nope'"),
+    (["--algo", "bc,bc"], "algorithm 'bc' is given twice"),
+    (["--algo", ","], "no algorithm given"),
+    (["--seeds", "0"], "seeds=0 is not allowed: need a positive integer"),
+    (["--seeds", "abc"], "argument --seeds: invalid int value: 'abc'"),
+    (["--seeds", "100000"], "seeds=100000 is too large: the run needs an estimated"),
+    (["--jobs", "-1"], "--jobs=-1 is not allowed"),
+    (["--preset", "huge"], "unknown preset 'huge'"),
+    (["--no-such-flag"], "unrecognized arguments: --no-such-flag"),
+    (["--out", ""], "--out is empty"),
+    (["--out", " "], "--out is empty"),
+    (["--out", "/sys/jaxdeconf-results"], "cannot write /sys/jaxdeconf-results: "),  # A read-only file system.
+    (["--set", "train.iterations=-3"], "train.iterations=-3 is not allowed: need a positive integer"),
+    (["--set", f"train.iterations={10**12}"], "train.iterations=1000000000000 is too large: need at most 2147483647"),
+    (["--set", "train.chunk=0"], "train.chunk=0 is not allowed"),
+    (["--set", "train.warmup=-1"], "train.warmup=-1 is not allowed: need an integer >= 0"),
+    (["--set", "train.warmup=300"], "train.warmup=300 is not allowed: need 0 <= warmup < train.iterations"),
+    (["--set", "train.batch_size=64"], "train.batch_size=64 exceeds train.buffer_episodes=32"),
+    (["--set", "train.policy_lr=nan"], "train.policy_lr=nan is not allowed: need a finite number"),
+    (["--set", "train.policy_lr=inf"], "train.policy_lr=inf is not allowed: need a finite number"),
+    (["--set", "train.policy_lr=0"], "train.policy_lr=0.0 is not allowed: need a number > 0"),
+    (["--set", "train.encoder_lr=-1e-3"], "train.encoder_lr=-0.001 is not allowed: need a number > 0"),
+    (["--set", "train.beta=NaN"], "train.beta=nan is not allowed: need a finite number"),
+    (["--set", "train.beta=-0.5"], "train.beta=-0.5 is not allowed: need a number >= 0"),
+    (["--set", "train.weight_decay=-inf"], "train.weight_decay=-inf is not allowed: need a finite number"),
+    (["--set", "train.encoder_clip=nan"], "train.encoder_clip=nan is not allowed: need a finite number"),
+    (["--set", "train.policy_clip=0"], "train.policy_clip=0.0 is not allowed: need a number > 0"),
+    (["--set", "train.buffer_episodes=1000000000"], "train.buffer_episodes=1000000000 is too large: the run needs"),
+    (["--set", "train.eval_episodes=0"], "train.eval_episodes=0 is not allowed"),
+    (["--set", "train.nope=1"], "unknown field 'train.nope'"),
+    (["--set", "nope=1"], "unknown field 'nope'"),
+    (["--set", "train.iterations"], "--set 'train.iterations' is not of the form FIELD=VALUE"),
+    (["--set", "train.iterations=2.5"], "train.iterations='2.5' is not a valid int"),
+    (["--set", "model.gru=abc"], "model.gru='abc' is not a valid int"),
+    (["--set", "model.gru=0"], "model.gru=0 is not allowed: need a positive integer"),
+    (["--set", "model.encoder=lstm"], "model.encoder='lstm' is not allowed; allowed: gru, evidence"),
+    (["--set", "model.encoder_deltas=maybe"], "model.encoder_deltas='maybe' is not a boolean"),
+    (["--set", "seed_start=-1"], "seed_start=-1 is not allowed: need an integer >= 0"),
+    (["--set", f"seed_start={2**32}"], "seed_start=4294967296 is too large"),
+    (["--set", f"seed_start={2**63}"], "seed_start=9223372036854775808 is too large"),
+    (["--set", f"seed_start={2**31 - 5}"], "seed_start=2147483643 is too large: seeds seed_start .. seed_start"),
+    (["--set", "env.p=1.5"], "p=1.5 is outside the allowed range (0, 1]"),
+    (["--set", "env.q=0"], "q=0.0 is outside the allowed range (0, 1]"),
+    (["--set", "env.p=nan"], "p=nan is outside the allowed range (0, 1]"),
+    (["--set", "env.horizon=0"], "bandit horizon=0 is not allowed"),
+    (["--set", "env.horizon=10000000"], "env.horizon=10000000 is too large: the run needs an estimated"),
+    (["--set", f"env.horizon={2**40}"], "env.horizon=1099511627776 is too large: need at most 2147483647"),
+    (["--set", "env.arms=1"], "bandit arms=1 is not allowed"),
+    (["--set", "env.nope=1"], "unknown parameter 'nope' for env 'bandit'"),
+    (["--env", "ant", "--set", "env.raw_bearing=maybe"],
+     "env ant_goal parameter raw_bearing='maybe' is not a boolean (allowed: true, false)"),
+]
+
+
+@pytest.mark.timeout(300)
 def test_bad_input_one_line_exit_2(tmp_path, capfd):
     out = ["--out", str(tmp_path / "r")]
-    _bad(capfd, ["--env", "cartpole", *out],
-         "unknown env 'cartpole'; allowed: ant_goal, bandit, half_cheetah, lunar_lander")
-    _bad(capfd, ["--algo", "bc,sqil", *out], "unknown algorithm 'sqil'; allowed: bc, oracle, dil, dagger, gail")
-    _bad(capfd, ["--set", "dagger.anneal_iterations=-1", *out], "dagger.anneal_iterations=-1 is not allowed")
-    _bad(capfd, ["--set", "gail.disc_steps=0", *out], "gail.disc_steps=0 is not allowed: need a positive integer")
-    _bad(capfd, ["--set", "gail.lr=nan", *out], "gail.lr=nan is not allowed: need a finite number > 0")
-    _bad(capfd, ["--set", "gail.gamma=1.5", *out], "gail.gamma=1.5 is not allowed: need a number in [0, 1]")
-    _bad(capfd, ["--set", "gail.disc_input=image", *out], "gail.disc_input='image' is not allowed")
-    _bad(capfd, ["--set", "gail.reward=sparse", *out], "gail.reward='sparse' is not allowed; allowed: discriminator")
-    _bad(capfd, ["--set", "gail.minibatches=5", *out], "gail.minibatches=5 must divide the generator's 128 episodes")
-    _bad(capfd, ["--set", "gail.nope=1", *out], "unknown field 'gail.nope'")
-    _bad(capfd, ["--seeds", "0", *out], "seeds=0 is not allowed: need a positive integer")
-    _bad(capfd, ["--set", "train.iterations=-3", *out], "train.iterations=-3 is not allowed")
-    _bad(capfd, ["--set", "env.p=1.5", *out], "p=1.5 is outside the allowed range (0, 1]")
-    _bad(capfd, ["--set", "env.q=0", *out], "q=0.0 is outside the allowed range (0, 1]")
-    _bad(capfd, ["--set", "train.nope=1", *out], "unknown field 'train.nope'")
-    _bad(capfd, ["--set", "model.gru=abc", *out], "model.gru='abc' is not a valid int")
-    _bad(capfd, ["--set", "model.encoder=lstm", *out], "model.encoder='lstm' is not allowed; allowed: gru, evidence")
-    _bad(capfd, ["--set", "model.encoder_deltas=maybe", *out], "model.encoder_deltas='maybe' is not a boolean")
-    _bad(capfd, ["--env", "ant", "--set", "env.raw_bearing=maybe", *out],
-         "env ant_goal parameter raw_bearing='maybe' is not a boolean (allowed: true, false)")
-    _bad(capfd, ["--preset", "huge", *out], "unknown preset 'huge'")
+    for argv, expected in BAD_INPUTS:
+        _bad(capfd, [*argv, *out] if "--out" not in argv else argv, expected)
     assert not (tmp_path / "r").exists()  # Nothing was written for bad input.
 
 
+def _results_folder(folder: pathlib.Path, config_text: str | None = None) -> list[str]:
+    """A results folder as a first start leaves it (config.json only); returns the CLI arguments that made it."""
+    from jaxdeconf.config import build
+    from jaxdeconf.run import prepare_folder
+
+    argv = ["--algo", "bc", "--seeds", "2", "--out", str(folder), "--quiet", *TINY_ARGS]
+    prepare_folder(folder, build("bandit", "cpu", ("bc",), 2, TINY), overwrite=False).release()
+    if config_text is not None:
+        (folder / "config.json").write_text(config_text)
+    return argv
+
+
+def _finished_bc(folder: pathlib.Path, rows: int) -> list[str]:
+    """A results folder whose bc says DONE but whose metrics.jsonl holds only ``rows`` of its 8 rows."""
+    argv = _results_folder(folder)
+    (folder / "bc").mkdir()
+    (folder / "bc" / "DONE").write_text("{}\n")
+    lines = [json.dumps({"algo": "bc", "seed": s, "iteration": i}) for s in (0, 1) for i in range(1, 5)]
+    (folder / "bc" / "metrics.jsonl").write_text("".join(line + "\n" for line in lines[:rows]))
+    return argv
+
+
+def test_bad_paths_and_damaged_files(tmp_path, capfd):
+    """Paths that cannot be a results folder, and damaged result files: one line each, naming the file and how to
+    recover, and nothing changed on disk."""
+    a_file = tmp_path / "a_file"
+    a_file.write_text("mine")
+    _bad(capfd, ["--out", str(a_file)], "is a file, not a folder")
+    _bad(capfd, ["--out", str(a_file / "sub")], "which is a file")
+    assert a_file.read_text() == "mine"
+
+    argv = _results_folder(tmp_path / "empty_config", "")
+    _bad(capfd, argv, "config.json is unreadable (Expecting value")
+    argv = _results_folder(tmp_path / "garbage_config", '{"env": "bandit"}')
+    _bad(capfd, argv, "config.json is not a valid config (KeyError")
+    argv = _finished_bc(tmp_path / "rows_missing", rows=5)
+    _bad(capfd, argv, "bc/metrics.jsonl is damaged: it holds 5 of the 8 rows")
+    (tmp_path / "rows_missing" / "bc" / "metrics.jsonl").unlink()
+    _bad(capfd, argv, "bc/metrics.jsonl is damaged: it holds 0 of the 8 rows")
+    argv = _finished_bc(tmp_path / "rows_twice", rows=8)
+    with (tmp_path / "rows_twice" / "bc" / "metrics.jsonl").open("a") as f:
+        f.write(json.dumps({"algo": "bc", "seed": 0, "iteration": 4}) + "\n")
+    _bad(capfd, argv, "(some twice)")
+
+    # A checkpoint folder the workers could not write (orbax would retry for minutes) is refused at once.
+    argv = _finished_bc(tmp_path / "read_only", rows=8)
+    (tmp_path / "read_only" / "bc" / "DONE").unlink()
+    (tmp_path / "read_only" / "bc" / "checkpoints").mkdir()
+    real_access = os.access
+    with pytest.MonkeyPatch.context() as mp:  # Tests may run as root, for whom chmod does not stop writes.
+        mp.setattr(os, "access", lambda p, mode: not str(p).endswith("checkpoints") and real_access(p, mode))
+        _bad(capfd, argv, "bc/checkpoints: permission denied; make it writable, or use another --out")
+
+    # The same config with an env parameter spelled differently is the same config.
+    _results_folder(tmp_path / "typed")
+    from jaxdeconf.config import build
+    from jaxdeconf.run import _check_same_config, typed_env_params
+
+    _check_same_config(tmp_path / "typed" / "config.json",
+                       typed_env_params(build("bandit", "cpu", ("bc",), 2, {**TINY, "env.horizon": "010"})))
+
+
+def test_overwrite_refuses_folders_it_did_not_write(tmp_path, capfd):
+    """--overwrite deletes only what this tool wrote: a folder of the user's files is refused, untouched."""
+    mine = tmp_path / "mine"
+    (mine / "notes").mkdir(parents=True)
+    (mine / "thesis.tex").write_text("years of work")
+    (mine / "notes" / "a.txt").write_text("a")
+    before = _snapshot(mine)
+    for extra in ([], ["--overwrite"]):
+        _bad(capfd, ["--out", str(mine), *extra, *TINY_ARGS], "holds files this tool did not write")
+        assert _snapshot(mine) == before
+    # A results folder with a file of the user's added to it is refused too.
+    argv = _results_folder(tmp_path / "results")
+    (tmp_path / "results" / "my_notes.txt").write_text("keep")
+    _bad(capfd, [*argv, "--overwrite"], "holds files this tool did not write (my_notes.txt)")
+    assert (tmp_path / "results" / "my_notes.txt").read_text() == "keep"
+
+
+def test_folder_in_use_is_refused(tmp_path, capfd):
+    """A second run on a folder in use is refused with one line naming the running one."""
+    from jaxdeconf.files import FolderLock
+
+    argv = _results_folder(tmp_path / "busy")
+    lock = FolderLock(tmp_path / "busy", "python -m jaxdeconf.run --the-first-one")
+    try:
+        _bad(capfd, argv, f"is in use by another run (pid {os.getpid()}, started")
+        _bad(capfd, [*argv, "--overwrite"], "--the-first-one")
+    finally:
+        lock.release()
+    assert (tmp_path / "busy" / "config.json").exists()
+
+
+def test_memory_estimate_bounds_the_state(tiny_config):
+    """The estimate is at least what the state of every seed really takes (checked on the real shapes)."""
+    import jax
+
+    from jaxdeconf.memory import estimate
+    from jaxdeconf.train import build_algorithm, seed_keys
+
+    config = tiny_config(seeds=3)
+    for name in ("bc", "dil"):
+        algo = build_algorithm(config, name)
+        shapes = jax.eval_shape(jax.vmap(algo.init), seed_keys(config))
+        real = sum(x.size * x.dtype.itemsize for x in jax.tree.leaves(shapes))
+        guess = estimate(config, name, algo.env, algo.env_params)
+        assert real <= guess.buffers + guess.params <= 20 * real, (name, real, guess)
+
+
+@pytest.mark.timeout(1200)  # Five runs of the CLI, three of which train.
 def test_run_then_protect_results(tmp_path, capfd):
     folder = tmp_path / "run"
     argv = ["--algo", "bc,dil", "--seeds", "2", "--out", str(folder), "--quiet", *TINY_ARGS]
@@ -68,6 +230,22 @@ def test_run_then_protect_results(tmp_path, capfd):
     for name, data in before.items():
         if name.endswith(("metrics.jsonl", ".npz", "DONE", "config.json")) or "checkpoints" in name:
             assert after[name] == data, name
+
+    # Files a finished run writes after its last checkpoint are recomputed, identical, when damaged: a half-written
+    # curves.npz (what a kill mid-write left before writes were atomic) and a cached references.json.
+    with np.load(folder / "dil" / "curves.npz") as f:
+        curves = {k: f[k] for k in f.files}
+    data = (folder / "dil" / "curves.npz").read_bytes()
+    (folder / "dil" / "curves.npz").write_bytes(data[: len(data) // 2])
+    (folder / "references.json").write_text('{"expert_count": ')
+    assert main(argv) == 0
+    out = capfd.readouterr().out
+    assert "curves.npz is missing or damaged: recomputing it" in out and "references.json is damaged" in out, out
+    with np.load(folder / "dil" / "curves.npz") as f:
+        assert {k: f[k].tobytes() for k in f.files} == {k: v.tobytes() for k, v in curves.items()}
+    after = _snapshot(folder)
+    for name in ("dil/metrics.jsonl", "bc/metrics.jsonl", "references.json", "summary.csv"):
+        assert after[name] == before[name], name
 
     # A different config on the same folder is refused, naming the difference.
     _bad(capfd, [*argv, "--set", "train.iterations=6"], "holds a different config (train.iterations: 4 there, 6 now)")

@@ -3,10 +3,20 @@
 from __future__ import annotations
 
 import json
+import os
+import pathlib
+import signal
+import subprocess
+import sys
+import time
 
+import numpy as np
 import pytest
+from conftest import TINY
 
+from jaxdeconf import run
 from jaxdeconf.checkpoint import Checkpoints
+from jaxdeconf.config import build
 from jaxdeconf.train import train_algorithm
 
 
@@ -35,3 +45,201 @@ def test_interrupted_run_resumes_exactly(tmp_path, tiny_config, monkeypatch):
     train_algorithm(config, "dil", tmp_path / "cut", progress=False)  # Resumes at iteration 2.
     assert calls == [2, 4]
     assert _rows(tmp_path / "cut") == _rows(tmp_path / "whole")
+
+
+# --- Kills (SIGKILL) at chosen moments of a small CLI run, each followed by a rerun of the same command. ---
+
+HELPER = pathlib.Path(__file__).with_name("kill_helper.py")
+SEEDS = 2
+CLI = ["--algo", "bc", "--seeds", str(SEEDS), "--quiet", "--jobs", "1",
+       *[arg for k, v in TINY.items() for arg in ("--set", f"{k}={v}")]]
+ITERATIONS = int(TINY["train.iterations"])
+
+
+def _env(cache: pathlib.Path) -> dict[str, str]:
+    """Subprocesses share a persistent compilation cache: the same programs, compiled once (this only saves time;
+    a cached executable is the same program, so results are unchanged)."""
+    return {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(cache), "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+            "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "-1", "PYTHONPATH": str(HELPER.parent)}
+
+
+def _cli(folder: pathlib.Path, cache: pathlib.Path, moment: str = "none", worker: bool = False,
+         timeout: float = 400) -> int:
+    """Run the CLI (or, with ``worker``, one worker of a prepared folder) in a subprocess with the kill ``moment``."""
+    argv = ["--worker", "bc", "--out", str(folder), "--quiet"] if worker else [*CLI, "--out", str(folder)]
+    proc = subprocess.run([sys.executable, str(HELPER), moment, str(ITERATIONS), *argv], env=_env(cache),
+                          timeout=timeout, capture_output=True, text=True)
+    assert proc.returncode in (0, -signal.SIGKILL), proc.stderr[-3000:]
+    return proc.returncode
+
+
+def results_of(folder: pathlib.Path, algos: tuple[str, ...] = ("bc",)) -> dict[str, object]:
+    """What a finished run's user reads: metrics files (bytes), curves (arrays) and the summary table."""
+    out: dict[str, object] = {"summary.csv": (folder / "summary.csv").read_text()}
+    for algo in algos:
+        assert (folder / algo / "DONE").exists(), algo
+        out[f"{algo}/metrics.jsonl"] = (folder / algo / "metrics.jsonl").read_bytes()
+        with np.load(folder / algo / "curves.npz") as curves:
+            out.update({f"{algo}/{k}": curves[k].tobytes() for k in curves.files})
+    return out
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """The reference: the same command, never interrupted (it also fills the compilation cache)."""
+    base = tmp_path_factory.mktemp("kills")
+    cache = base / "cache"
+    assert _cli(base / "whole", cache) == 0
+    return base, cache, results_of(base / "whole")
+
+
+def _prepare(folder: pathlib.Path) -> None:
+    """What the CLI's parent does before it starts a worker: the folder and its config.json."""
+    config = build("bandit", "cpu", ("bc",), SEEDS, TINY)
+    run.prepare_folder(folder, config, overwrite=False).release()
+
+
+MOMENTS = [
+    # (moment, what is killed). The kill lands in the worker, except for config.json (the parent writes it).
+    "before_done",  # Between the last checkpoint and DONE.
+    "curves.npz",  # While curves.npz is written.
+    pytest.param("checkpoint_write", marks=pytest.mark.slow),  # While orbax writes a checkpoint.
+    pytest.param("config.json", marks=pytest.mark.slow),  # While config.json is written.
+    pytest.param("metrics.jsonl", marks=pytest.mark.slow),  # During the resume's rewrite of metrics.jsonl.
+]
+
+
+@pytest.mark.timeout(900)
+@pytest.mark.parametrize("moment", MOMENTS)
+def test_kill_then_rerun_is_identical(uninterrupted, moment):
+    base, cache, expected = uninterrupted
+    folder = base / moment
+    if moment == "config.json":
+        assert _cli(folder, cache, moment) == -signal.SIGKILL
+        assert not (folder / "config.json").exists()
+    else:
+        _prepare(folder)
+        if moment == "metrics.jsonl":  # Rows past the last checkpoint first, then a kill while resuming drops them.
+            assert _cli(folder, cache, "after_metrics_append", worker=True) == -signal.SIGKILL
+        assert _cli(folder, cache, moment, worker=True) == -signal.SIGKILL
+        assert not (folder / "bc" / "DONE").exists()
+    assert _cli(folder, cache) == 0  # The same command again: it resumes and finishes.
+    assert results_of(folder) == expected
+    assert not [p for p in folder.rglob(".tmp-*")], "temporary files left behind"
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(7200)
+def test_random_kills_resume_identically(tmp_path):
+    """SIGKILL a 3-seed bc + dil bandit run (parent and workers at once) at 20 random moments; after each, the same
+    command again finishes with results identical to the uninterrupted run's."""
+    rng = np.random.default_rng(19)
+    cache = tmp_path / "cache"
+    argv = ["--algo", "bc,dil", "--seeds", "3", "--quiet", *[a for k, v in TINY.items() for a in ("--set", f"{k}={v}")]]
+    cmd = [sys.executable, "-m", "jaxdeconf.run", *argv, "--out"]
+    t0 = time.monotonic()
+    subprocess.run([*cmd, str(tmp_path / "whole")], env=_env(cache), timeout=1800, check=True, capture_output=True)
+    expected = results_of(tmp_path / "whole", ("bc", "dil"))
+    # Kills uniform over a run's length, timed on a second run (the first also compiled into the cache).
+    t1 = time.monotonic()
+    subprocess.run([*cmd, str(tmp_path / "timing")], env=_env(cache), timeout=1800, check=True, capture_output=True)
+    length = time.monotonic() - t1
+    print(f"first run {t1 - t0:.1f} s, cached run {length:.1f} s")
+    for trial in range(int(os.environ.get("KILL_TRIALS", "20"))):  # Fewer, to try the test on a busy machine.
+        folder = tmp_path / f"kill{trial}"
+        at = float(rng.uniform(0.5, length))
+        proc = subprocess.Popen([*cmd, str(folder)], env=_env(cache), start_new_session=True,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            proc.wait(timeout=at)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait(timeout=60)
+        state = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())[-3:]
+        print(f"trial {trial}: kill at {at:.1f} s, exit {proc.returncode}, last files {state}")
+        subprocess.run([*cmd, str(folder)], env=_env(cache), timeout=1800, check=True, capture_output=True)
+        assert results_of(folder, ("bc", "dil")) == expected, trial
+
+
+def test_non_finite_loss_stops_with_one_line(tiny_config):
+    """NaN after warm-up (or an infinity anywhere) names the algorithm, seeds and iteration; warm-up NaN is fine."""
+    from jaxdeconf.train import DivergedError, check_finite
+
+    config = tiny_config(seeds=3)  # Warm-up: iteration 1.
+    nan = float("nan")
+    evals = {"eval_return": np.ones(3), "p_best_online": np.full((3, 10), nan)}
+    check_finite("bc", config, 0, {"policy_loss": np.array([[nan, 1.0]] * 3)}, evals)  # Warm-up NaN: fine.
+    with pytest.raises(DivergedError, match=r"^bc diverged: policy_loss is nan at iteration 4 for seed\(s\) 1, 2; "
+                                            r".*last good checkpoint \(iteration 2\) is kept"):
+        check_finite("bc", config, 2, {"policy_loss": np.array([[1.0, 1.0], [1.0, nan], [1.0, nan]])}, evals)
+    with pytest.raises(DivergedError, match=r"elbo_loss is inf at iteration 1 for seed\(s\) 0"):
+        check_finite("dil", config, 0, {"elbo_loss": np.array([[np.inf, 1.0], [1.0, 1.0], [1.0, 1.0]])}, evals)
+    with pytest.raises(DivergedError, match=r"eval_return is nan at iteration 2 for seed\(s\) 2"):
+        check_finite("dil", config, 0, {"loss": np.ones((3, 2))}, {**evals, "eval_return": np.array([1, 1, nan])})
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(600)
+def test_diverging_run_keeps_last_good_checkpoint(tmp_path, tiny_config):
+    """A learning rate that blows the policy up stops training at the end of the chunk; nothing bad is written."""
+    from jaxdeconf.train import DivergedError
+
+    config = tiny_config(**{"train.policy_lr": "1e30"})
+    with pytest.raises(DivergedError, match="bc diverged: policy_loss is"):
+        train_algorithm(config, "bc", tmp_path / "bc", progress=False)
+    rows = _rows(tmp_path / "bc")
+    done = Checkpoints(tmp_path / "bc" / "checkpoints").latest_step() or 0
+    assert all(r["iteration"] <= done for r in rows) and not (tmp_path / "bc" / "DONE").exists()
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("signum", [signal.SIGTERM, pytest.param(signal.SIGINT, marks=pytest.mark.slow)])
+def test_signal_stops_workers_with_one_line(tmp_path, signum):
+    """SIGTERM to the run (or Ctrl-C, which a terminal sends to every process of it) stops its workers too."""
+    folder = tmp_path / "r"
+    proc = subprocess.Popen([sys.executable, "-m", "jaxdeconf.run", *CLI, "--out", str(folder)],
+                            start_new_session=True, stderr=subprocess.PIPE, text=True)
+    lock = folder / "bc" / ".lock"
+    deadline = time.monotonic() + 200
+    while not (lock.exists() and lock.read_text().startswith("pid")) and time.monotonic() < deadline:
+        time.sleep(0.2)
+    worker = int(lock.read_text().split()[1].rstrip(","))
+    if signum == signal.SIGTERM:
+        proc.send_signal(signum)
+    else:
+        os.killpg(proc.pid, signum)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signum
+    assert err.strip().splitlines() == [f"error: stopped by {signal.Signals(signum).name}; finished chunks are "
+                                        "checkpointed: run the same command again to resume"], err
+    with pytest.raises(ProcessLookupError):
+        os.kill(worker, 0)  # No orphan left.
+
+
+def test_resume_metrics_drops_exactly_the_rows_past_the_checkpoint(tmp_path, tiny_config):
+    """Rows past the checkpoint, a partial last line and garbage go (by an atomic rewrite); missing rows are an
+    error naming the file; rows are strict JSON (NaN written as null)."""
+    from jaxdeconf.config import ConfigError
+    from jaxdeconf.files import append_lines, dumps_row, read_rows
+    from jaxdeconf.train import resume_metrics
+
+    config = tiny_config(seeds=2)
+    path = tmp_path / "metrics.jsonl"
+    rows = [{"algo": "bc", "seed": s, "iteration": i, "policy_loss": float("nan") if i == 1 else 0.5}
+            for i in (1, 2, 3) for s in (0, 1)]
+    append_lines(path, [dumps_row(r) for r in rows])
+    kept = path.read_text().splitlines()[:4]  # Iterations 1 and 2.
+    for line in path.read_text().splitlines():
+        json.loads(line, parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}"))
+    with path.open("a") as f:
+        f.write('not json\n{"algo": "bc", "seed": 0, "itera')  # Garbage, then what a kill mid-append leaves.
+    inode = path.stat().st_ino
+    resume_metrics(path, config, "bc", done=2)
+    assert path.read_text().splitlines() == kept
+    assert path.stat().st_ino != inode  # Replaced by a new file, not rewritten in place.
+    assert np.isnan(read_rows(path)[0]["policy_loss"]) and read_rows(path)[3]["policy_loss"] == 0.5
+    inode = path.stat().st_ino
+    resume_metrics(path, config, "bc", done=2)  # Nothing to drop: the file is left alone.
+    assert path.stat().st_ino == inode and path.read_text().splitlines() == kept
+    with pytest.raises(ConfigError, match=r"metrics.jsonl is damaged: it holds 4 of the 6 rows of the 3 iterations"):
+        resume_metrics(path, config, "bc", done=3)

@@ -27,12 +27,17 @@ class Checkpoints:
     def __init__(self, directory: pathlib.Path) -> None:
         """Open (or create lazily) the checkpoint folder."""
         self.directory = pathlib.Path(directory).absolute()
-        options = ocp.CheckpointManagerOptions(max_to_keep=2, create=True)
+        # A kill during a save leaves orbax's temporary folder behind (never a half checkpoint): delete it on start.
+        options = ocp.CheckpointManagerOptions(max_to_keep=2, create=True, cleanup_tmp_directories=True)
         self.manager = ocp.CheckpointManager(self.directory, options=options)
 
     def latest_step(self) -> int | None:
         """Iterations done in the newest checkpoint, or None."""
         return self.manager.latest_step()
+
+    def all_steps(self) -> list[int]:
+        """Iterations done in every kept checkpoint."""
+        return list(self.manager.all_steps())
 
     def save(self, step: int, state: Any) -> None:
         """Write a checkpoint (atomically: orbax renames a finished temporary folder)."""

@@ -19,43 +19,57 @@ class ConfigError(ValueError):
     """Bad user input; the CLI prints it as one line and exits with code 2."""
 
 
+#: Every integer field passes through int32 inside the compiled programs (shapes, counters, seeds).
+INT32_MAX = 2**31 - 1
+
+
+def _field(default: Any, allowed: str | tuple[str, ...]) -> Any:
+    """A config field with its allowed values stated once, next to it: ``">0"``, ``">=1"`` or a tuple of choices.
+
+    ``validate`` checks every field of every section against this (and rejects NaN and infinities everywhere).
+    """
+    return dataclasses.field(default=default, metadata={"allowed": allowed})
+
+
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
     """Network sizes (static: they fix shapes)."""
 
-    width: int = 128  # Hidden width of every MLP block (Linear -> LayerNorm -> ELU, two blocks).
-    action_embed: int = 32  # Size of the previous-action embedding fed to the GRUs.
-    gru: int = 500  # GRU hidden size of the inference model q_phi.
-    bc_gru: int = 500  # GRU hidden size of the recurrent naive-BC / oracle policy.
-    latent: int = 64  # Latent size of theta-hat.
+    width: int = _field(128, ">=1")  # Hidden width of every MLP block (Linear -> LayerNorm -> ELU, two blocks).
+    action_embed: int = _field(32, ">=1")  # Size of the previous-action embedding fed to the GRUs.
+    gru: int = _field(500, ">=1")  # GRU hidden size of the inference model q_phi.
+    bc_gru: int = _field(500, ">=1")  # GRU hidden size of the recurrent naive-BC / oracle policy.
+    latent: int = _field(64, ">=1")  # Latent size of theta-hat.
     # With a Gaussian observation likelihood, also feed q_phi the standardised change (s_t - s_{t-1}) / delta_scale
     # that the decoder scores: the evidence about theta is in transitions, and small ones (an engine's kick) are a few
     # percent of an observation's spread, hard for a small GRU to difference out of consecutive inputs.
     encoder_deltas: bool = True
     # q_phi's recurrence: "gru" (the paper's) or "evidence" (a product of per-step Gaussian factors; models.py).
-    encoder: str = "gru"
+    encoder: str = _field("gru", ENCODERS)
 
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
     """Loop counts (static) and optimisation constants."""
 
-    iterations: int = 300  # Outer iterations (Algorithm 1's while-loop).
-    warmup: int = 20  # First iterations that collect data (and train the encoder) but do not update the policy.
-    chunk: int = 10  # Iterations per compiled chunk; progress, metrics and checkpoints happen once per chunk.
-    episodes_per_iter: int = 16  # Episodes collected per data stream per iteration.
-    batch_size: int = 16  # Whole episodes per gradient step.
-    policy_steps: int = 100  # Policy (BC) gradient steps per iteration.
-    encoder_steps: int = 100  # Inference-model (ELBO) gradient steps per iteration (dil only).
-    buffer_episodes: int = 2000  # Replay-buffer capacity per data stream, in whole episodes.
-    policy_lr: float = 3e-4  # AdamW learning rate of the policy.
-    encoder_lr: float = 3e-4  # AdamW learning rate of encoder and decoder.
-    weight_decay: float = 0.01  # AdamW weight decay.
-    encoder_clip: float = 100.0  # Global-norm gradient clip of the inference model.
-    policy_clip: float = 100.0  # Global-norm gradient clip of the policy.
-    beta: float = 1.0  # KL weight of the sequential ELBO (eq. 11).
-    prediction_steps: int = 1  # K: how many future observations the decoder predicts from z_t.
-    eval_episodes: int = 64  # Online evaluation episodes per chunk.
+    iterations: int = _field(300, ">=1")  # Outer iterations (Algorithm 1's while-loop).
+    # First iterations that collect data (and train the encoder) but do not update the policy.
+    warmup: int = _field(20, ">=0")
+    # Iterations per compiled chunk; progress, metrics and checkpoints happen once per chunk.
+    chunk: int = _field(10, ">=1")
+    episodes_per_iter: int = _field(16, ">=1")  # Episodes collected per data stream per iteration.
+    batch_size: int = _field(16, ">=1")  # Whole episodes per gradient step.
+    policy_steps: int = _field(100, ">=1")  # Policy (BC) gradient steps per iteration.
+    encoder_steps: int = _field(100, ">=1")  # Inference-model (ELBO) gradient steps per iteration (dil only).
+    buffer_episodes: int = _field(2000, ">=1")  # Replay-buffer capacity per data stream, in whole episodes.
+    policy_lr: float = _field(3e-4, ">0")  # AdamW learning rate of the policy.
+    encoder_lr: float = _field(3e-4, ">0")  # AdamW learning rate of encoder and decoder.
+    weight_decay: float = _field(0.01, ">=0")  # AdamW weight decay.
+    encoder_clip: float = _field(100.0, ">0")  # Global-norm gradient clip of the inference model.
+    policy_clip: float = _field(100.0, ">0")  # Global-norm gradient clip of the policy.
+    beta: float = _field(1.0, ">=0")  # KL weight of the sequential ELBO (eq. 11).
+    prediction_steps: int = _field(1, ">=1")  # K: how many future observations the decoder predicts from z_t.
+    eval_episodes: int = _field(64, ">=1")  # Online evaluation episodes per chunk.
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,27 +78,29 @@ class DaggerConfig:
 
     # beta, the probability that a step executes the expert's action, falls linearly from 1 at iteration 0 to 0 at
     # this iteration and stays 0 after; 0 means the imitator acts alone from the start.
-    anneal_iterations: int = 125
+    anneal_iterations: int = _field(125, ">=0")
 
 
 @dataclasses.dataclass(frozen=True)
 class GailConfig:
     """GAIL: the recurrent PPO generator and the discriminator (defaults: the reference code's constants)."""
 
-    rollout_factor: int = 4  # Generator episodes per iteration, as a multiple of train.episodes_per_iter.
-    disc_steps: int = 20  # Discriminator gradient steps per iteration.
-    disc_lr: float = 3e-4  # Discriminator Adam learning rate.
-    disc_input: str = "next"  # What the discriminator reads: "next" (s', the reference code's) or "transition".
-    reward: str = "discriminator"  # "discriminator" (-log(1 - D(.))) or "env" (the true reward: a PPO check).
-    lr: float = 3e-4  # Generator (actor and critic) Adam learning rate.
-    epochs: int = 10  # PPO epochs over each iteration's rollouts.
-    minibatches: int = 4  # Minibatches per epoch, each of whole episodes.
-    clip_eps: float = 0.2  # PPO's probability-ratio clip.
-    gamma: float = 0.99  # Discount.
-    gae_lambda: float = 0.95  # GAE's lambda.
-    max_grad_norm: float = 0.5  # Global-norm gradient clip of the generator.
-    value_coef: float = 0.5  # Weight of the critic's squared error in the generator's loss.
-    entropy_coef: float = 0.0  # Weight of the policy's entropy bonus.
+    rollout_factor: int = _field(4, ">=1")  # Generator episodes per iteration, in units of train.episodes_per_iter.
+    disc_steps: int = _field(20, ">=1")  # Discriminator gradient steps per iteration.
+    disc_lr: float = _field(3e-4, ">0")  # Discriminator Adam learning rate.
+    # What the discriminator reads: "next" (s', the reference code's) or "transition" (s, a, s').
+    disc_input: str = _field("next", DISC_INPUTS)
+    # The generator's reward: "discriminator" (-log(1 - D)) or "env" (the env's own reward, a check of PPO).
+    reward: str = _field("discriminator", GAIL_REWARDS)
+    lr: float = _field(3e-4, ">0")  # Generator (actor and critic) Adam learning rate.
+    epochs: int = _field(10, ">=1")  # PPO epochs over each iteration's rollouts.
+    minibatches: int = _field(4, ">=1")  # Minibatches per epoch, each of whole episodes.
+    clip_eps: float = _field(0.2, ">0")  # PPO's probability-ratio clip.
+    gamma: float = _field(0.99, ">=0")  # Discount (at most 1).
+    gae_lambda: float = _field(0.95, ">=0")  # GAE's lambda (at most 1).
+    max_grad_norm: float = _field(0.5, ">0")  # Global-norm gradient clip of the generator.
+    value_coef: float = _field(0.5, ">=0")  # Weight of the critic's squared error in the generator's loss.
+    entropy_coef: float = _field(0.0, ">=0")  # Weight of the policy's entropy bonus.
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,8 +110,8 @@ class Config:
     env: str = "bandit"
     env_params: dict[str, Any] = dataclasses.field(default_factory=dict)  # Overrides of the env's defaults.
     algos: tuple[str, ...] = ("bc", "dil")
-    seeds: int = 10  # Number of seeds, trained together in one vmapped program.
-    seed_start: int = 0  # Seeds are seed_start .. seed_start + seeds - 1.
+    seeds: int = _field(10, ">=1")  # Number of seeds, trained together in one vmapped program.
+    seed_start: int = _field(0, ">=0")  # Seeds are seed_start .. seed_start + seeds - 1.
     model: ModelConfig = ModelConfig()
     train: TrainConfig = TrainConfig()
     dagger: DaggerConfig = DaggerConfig()
@@ -316,65 +332,78 @@ def apply_overrides(config: Config, overrides: dict[str, Any]) -> Config:
     return dataclasses.replace(config, env_params=env_params, **replaced, **top)
 
 
+def _need(kind: str, rule: str) -> str:
+    """What a range rule asks for, in words: ``need a positive integer``, ``need a number > 0``."""
+    if (kind, rule) == ("int", ">=1"):
+        return "need a positive integer"
+    op = rule.rstrip("0123456789.")
+    return f"need {'an integer' if kind == 'int' else 'a number'} {op} {rule[len(op):]}"
+
+
+def _check_field(name: str, value: Any, default: Any, allowed: Any) -> None:
+    """Raise ConfigError if one field's value has the wrong type, is not finite, or breaks its stated range."""
+    kind = type(default)
+    if kind is float and type(value) is int:
+        value = float(value)  # JSON writes 1.0 as 1.0, but a hand-edited 1 is still a fine float.
+    if type(value) is not kind:
+        raise ConfigError(f"{name}={value!r} is not a valid {kind.__name__}")
+    if kind is float and not math.isfinite(value):
+        raise ConfigError(f"{name}={value} is not allowed: need a finite number")
+    if isinstance(allowed, tuple) and value not in allowed:
+        raise ConfigError(f"{name}={value!r} is not allowed; allowed: {', '.join(allowed)}")
+    if isinstance(allowed, str):
+        op, bound = allowed.rstrip("0123456789."), float(allowed.lstrip("<>="))
+        ok = {">": value > bound, ">=": value >= bound}[op]
+        if not ok:
+            raise ConfigError(f"{name}={value} is not allowed: {_need(kind.__name__, allowed)}")
+    if kind is int and value > INT32_MAX:
+        raise ConfigError(f"{name}={value} is too large: need at most {INT32_MAX}")
+
+
+def _fields(section: Any, prefix: str = "") -> list[tuple[str, Any, Any, Any]]:
+    """(dotted name, value, default, allowed or None) of every scalar field, walking nested dataclass sections: a
+    field without a stated range is still checked for its type, finiteness and the int32 bound."""
+    out = []
+    for f in dataclasses.fields(section):
+        value = getattr(section, f.name)
+        if dataclasses.is_dataclass(value):
+            out += _fields(value, f"{prefix}{f.name}.")
+        elif type(f.default) in (int, float, str, bool):
+            out.append((f"{prefix}{f.name}", value, f.default, f.metadata.get("allowed")))
+    return out
+
+
 def validate(config: Config) -> None:
     """Raise ConfigError naming the first value outside its allowed range."""
-    for algo in config.algos:
-        if algo not in ALGOS:
-            raise ConfigError(f"unknown algorithm {algo!r}; allowed: {', '.join(ALGOS)}")
     if not config.algos:
         raise ConfigError("no algorithm given; allowed: " + ", ".join(ALGOS))
-    if config.seeds < 1:
-        raise ConfigError(f"seeds={config.seeds} is not allowed: need a positive integer")
-    if config.seed_start < 0:
-        raise ConfigError(f"seed_start={config.seed_start} is not allowed: need an integer >= 0")
-    if config.model.encoder not in ENCODERS:
-        raise ConfigError(f"model.encoder={config.model.encoder!r} is not allowed; allowed: {', '.join(ENCODERS)}")
-    positive = {f"model.{f.name}": getattr(config.model, f.name) for f in dataclasses.fields(config.model)
-                if type(getattr(config.model, f.name)) is int}
-    for name in ("iterations", "chunk", "episodes_per_iter", "batch_size", "policy_steps", "encoder_steps",
-                 "buffer_episodes", "prediction_steps", "eval_episodes"):
-        positive[f"train.{name}"] = getattr(config.train, name)
-    for name, value in positive.items():
-        if value < 1:
-            raise ConfigError(f"{name}={value} is not allowed: need a positive integer")
-    if config.train.warmup < 0 or config.train.warmup >= config.train.iterations:
+    for i, algo in enumerate(config.algos):
+        if algo not in ALGOS:
+            raise ConfigError(f"unknown algorithm {algo!r}; allowed: {', '.join(ALGOS)}")
+        if algo in config.algos[:i]:
+            raise ConfigError(f"algorithm {algo!r} is given twice; name each algorithm once")
+    for name, value, default, allowed in _fields(config):
+        _check_field(name, value, default, allowed)
+    # Relations between fields.
+    if config.train.warmup >= config.train.iterations:
         raise ConfigError(f"train.warmup={config.train.warmup} is not allowed: need 0 <= warmup < train.iterations")
-    for name in ("policy_lr", "encoder_lr", "encoder_clip", "policy_clip"):
-        if getattr(config.train, name) <= 0:
-            raise ConfigError(f"train.{name}={getattr(config.train, name)} is not allowed: need a positive number")
-    for name in ("beta", "weight_decay"):
-        if getattr(config.train, name) < 0:
-            raise ConfigError(f"train.{name}={getattr(config.train, name)} is not allowed: need a number >= 0")
     _validate_baselines(config)
     if config.train.batch_size > config.train.buffer_episodes:
         raise ConfigError(
             f"train.batch_size={config.train.batch_size} exceeds train.buffer_episodes="
             f"{config.train.buffer_episodes}: a batch must fit in the buffer"
         )
+    if config.seed_start + config.seeds - 1 > INT32_MAX:
+        raise ConfigError(f"seed_start={config.seed_start} is too large: seeds seed_start .. seed_start + seeds - 1 "
+                          f"must be at most {INT32_MAX}")
 
 
 def _validate_baselines(config: Config) -> None:
-    """Raise ConfigError for a bad value of the dagger.* or gail.* sections."""
+    """Raise ConfigError for relations within the gail.* section that no single field's range states."""
     g = config.gail
-    if config.dagger.anneal_iterations < 0:
-        raise ConfigError(f"dagger.anneal_iterations={config.dagger.anneal_iterations} is not allowed: need an "
-                          "integer >= 0")
-    for name in ("rollout_factor", "disc_steps", "epochs", "minibatches"):
-        if getattr(g, name) < 1:
-            raise ConfigError(f"gail.{name}={getattr(g, name)} is not allowed: need a positive integer")
-    for name in ("disc_lr", "lr", "clip_eps", "max_grad_norm"):
-        if not math.isfinite(getattr(g, name)) or getattr(g, name) <= 0:
-            raise ConfigError(f"gail.{name}={getattr(g, name)} is not allowed: need a finite number > 0")
-    for name in ("value_coef", "entropy_coef"):
-        if not math.isfinite(getattr(g, name)) or getattr(g, name) < 0:
-            raise ConfigError(f"gail.{name}={getattr(g, name)} is not allowed: need a finite number >= 0")
     for name in ("gamma", "gae_lambda"):
-        if not 0 <= getattr(g, name) <= 1:
+        if getattr(g, name) > 1:
             raise ConfigError(f"gail.{name}={getattr(g, name)} is not allowed: need a number in [0, 1]")
-    if g.disc_input not in DISC_INPUTS:
-        raise ConfigError(f"gail.disc_input={g.disc_input!r} is not allowed; allowed: {', '.join(DISC_INPUTS)}")
-    if g.reward not in GAIL_REWARDS:
-        raise ConfigError(f"gail.reward={g.reward!r} is not allowed; allowed: {', '.join(GAIL_REWARDS)}")
     episodes = config.train.episodes_per_iter * g.rollout_factor
     if episodes % g.minibatches:
         raise ConfigError(f"gail.minibatches={g.minibatches} must divide the generator's {episodes} episodes per "

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import csv
-import json
+import io
 import pathlib
 from typing import Any
 
 import numpy as np
 
 from jaxdeconf.config import Config
+from jaxdeconf.files import read_rows, write_atomic
 
 # Which exact reference each algorithm should match on the bandit (see the paper, section 5.1).
 TARGET = {"bc": "conditional", "dil": "interventional", "oracle": "expert", "dagger": "interventional"}
@@ -18,9 +19,8 @@ SMOOTH = 5  # Sliding window (evaluations) of comparison.png, as in the paper's 
 
 
 def load_metrics(folder: pathlib.Path, algo: str) -> list[dict[str, Any]]:
-    """Rows of ``<algo>/metrics.jsonl``."""
-    path = folder / algo / "metrics.jsonl"
-    return [json.loads(line) for line in path.read_text().splitlines() if line] if path.exists() else []
+    """Rows of ``<algo>/metrics.jsonl`` (null values as NaN)."""
+    return read_rows(folder / algo / "metrics.jsonl")
 
 
 def eval_table(rows: list[dict[str, Any]], key: str) -> tuple[np.ndarray, np.ndarray]:
@@ -88,10 +88,11 @@ def add_gap_closed(table: list[dict[str, Any]], folder: pathlib.Path) -> None:
 def write_summary(folder: pathlib.Path, table: list[dict[str, Any]], refs: dict[str, Any] | None) -> str:
     """Write summary.csv and summary.md; return the Markdown text."""
     keys = sorted({k for row in table for k in row}, key=lambda k: (k not in ("algo", "seeds", "iterations"), k))
-    with (folder / "summary.csv").open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=keys)
-        writer.writeheader()
-        writer.writerows(table)
+    buf = io.StringIO(newline="")
+    writer = csv.DictWriter(buf, fieldnames=keys)
+    writer.writeheader()
+    writer.writerows(table)
+    write_atomic(folder / "summary.csv", buf.getvalue())
     lines = ["| " + " | ".join(keys) + " |", "|" + "---|" * len(keys)]
     for row in table:
         cells = [f"{row[k]:.3f}" if isinstance(row.get(k), float) else str(row.get(k, "")) for k in keys]
@@ -103,8 +104,18 @@ def write_summary(folder: pathlib.Path, table: list[dict[str, Any]], refs: dict[
             f"interventional {refs['interventional_count']:.2f} ± {refs['interventional_count_se']:.2f}, "
             f"conditional {refs['conditional_count']:.2f} ± {refs['conditional_count_se']:.2f}.\n"
         )
-    (folder / "summary.md").write_text(text)
+    write_atomic(folder / "summary.md", text)
     return text
+
+
+def _save_figure(fig: Any, path: pathlib.Path) -> None:
+    """Write a figure as a PNG atomically and close it."""
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=120)
+    plt.close(fig)
+    write_atomic(path, buf.getvalue())
 
 
 def plot(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> list[pathlib.Path]:
@@ -136,8 +147,7 @@ def plot(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> l
     ax.set_title(f"{config.env}: mean ± s.e. over {config.seeds} seeds")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(folder / "learning_curves.png", dpi=120)
-    plt.close(fig)
+    _save_figure(fig, folder / "learning_curves.png")
     written.append(folder / "learning_curves.png")
 
     written.append(plot_comparison(folder, config, refs))
@@ -160,8 +170,7 @@ def plot(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> l
     axes[0].set_ylabel("P(best arm)")
     axes[1].legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(folder / "p_best.png", dpi=120)
-    plt.close(fig)
+    _save_figure(fig, folder / "p_best.png")
     written.append(folder / "p_best.png")
     return written
 

@@ -3,22 +3,45 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import math
 import os
 import pathlib
 import shutil
+import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterable, Iterator
 from typing import Any
 
 from jaxdeconf import config as cfg
 from jaxdeconf.config import ConfigError
+from jaxdeconf.files import (
+    LOCK_NAME,
+    TMP_PREFIX,
+    FolderLock,
+    command_line,
+    read_json,
+    read_rows,
+    remove_temporaries,
+    writable,
+    write_atomic,
+)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, with a bad flag as a one-line ConfigError instead of the usage text and exit."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        """Raise instead of printing the usage."""
+        raise ConfigError(message)
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     """Command-line flags."""
-    p = argparse.ArgumentParser(prog="python -m jaxdeconf.run", description=__doc__)
+    p = _Parser(prog="python -m jaxdeconf.run", description=__doc__)
     p.add_argument("--env", default="bandit", help="environment name (default: bandit)")
     p.add_argument("--algo", default="bc,dil",
                    help=f"comma-separated algorithms from {', '.join(cfg.ALGOS)}, or all")
@@ -49,23 +72,107 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
     return out
 
 
-def prepare_folder(folder: pathlib.Path, config: cfg.Config, overwrite: bool) -> None:
-    """Create the results folder, or check an existing one holds the same config (never clobber results)."""
-    config_path = folder / "config.json"
-    if folder.exists() and overwrite:
-        shutil.rmtree(folder)
-    if config_path.exists():
-        old = config_path.read_text()
-        if old.strip() != cfg.dumps(config).strip():
-            old_cfg = json.loads(old)
-            diff = _first_difference(old_cfg, config.to_dict())
-            raise ConfigError(
-                f"results folder {folder} holds a different config ({diff}); use another --out, or --overwrite"
-            )
-    elif folder.exists() and any(folder.iterdir()):
-        raise ConfigError(f"results folder {folder} is not empty and has no config.json; use another --out")
-    folder.mkdir(parents=True, exist_ok=True)
-    config_path.write_text(cfg.dumps(config) + "\n")
+# What this tool writes in a results folder, and in each algorithm's subfolder: --overwrite deletes nothing else.
+RESULT_FILES = {"config.json", "references.json", "summary.md", "summary.csv", "learning_curves.png", "p_best.png",
+                LOCK_NAME}
+ALGO_FILES = {"metrics.jsonl", "curves.npz", "DONE", "checkpoints", LOCK_NAME}
+
+
+def _foreign(folder: pathlib.Path) -> list[str]:
+    """Entries of ``folder`` that this tool did not write (temporaries of its atomic writes are its own)."""
+    def ours(p: pathlib.Path, names: set[str]) -> bool:
+        return p.name in names or p.name.startswith(TMP_PREFIX)
+
+    out = []
+    for p in sorted(folder.iterdir()):
+        if p.is_dir() and not p.is_symlink() and p.name not in RESULT_FILES:
+            out += [f"{p.name}/{q.name}" for q in sorted(p.iterdir()) if not ours(q, ALGO_FILES)]
+        elif not ours(p, RESULT_FILES) or p.is_symlink():
+            out.append(p.name)
+    return out
+
+
+def _check_out(folder: pathlib.Path) -> None:
+    """Refuse an --out that is a file, or a folder of someone else's files (with or without --overwrite)."""
+    if folder.exists() and not folder.is_dir():
+        raise ConfigError(f"--out {folder} is a file, not a folder; use another --out")
+    for parent in folder.parents:
+        if parent.exists() and not parent.is_dir():
+            raise ConfigError(f"--out {folder} lies inside {parent}, which is a file; use another --out")
+    if not folder.exists():
+        return
+    foreign = _foreign(folder)
+    ours = [p for p in folder.iterdir() if p.name != LOCK_NAME and not p.name.startswith(TMP_PREFIX)]
+    if foreign or (ours and not (folder / "config.json").exists()):
+        what = f"holds files this tool did not write ({', '.join(foreign[:3])})" if foreign else \
+            "is not empty and has no config.json"
+        raise ConfigError(f"results folder {folder} {what}; nothing was changed: use another --out"
+                          + (" (--overwrite only deletes results folders this tool wrote)" if foreign else ""))
+
+
+def prepare_folder(folder: pathlib.Path, config: cfg.Config, overwrite: bool) -> FolderLock:
+    """Create the results folder, or check an existing one holds the same config (never clobber results); return the
+    folder's lock, held until this process exits."""
+    _check_out(folder)
+    with writable(folder):
+        folder.mkdir(parents=True, exist_ok=True)
+        lock = FolderLock(folder, command_line())
+    try:
+        _fill_folder(folder, config, overwrite)
+    except BaseException:
+        lock.release()  # Refused: the folder is free again at once (main() may be called again in this process).
+        raise
+    return lock
+
+
+def _fill_folder(folder: pathlib.Path, config: cfg.Config, overwrite: bool) -> None:
+    """Under the lock: drop temporaries, empty the folder for --overwrite, then write or check config.json."""
+    with writable(folder):
+        remove_temporaries(folder)
+        if overwrite:
+            for p in folder.iterdir():
+                if p.name != LOCK_NAME:
+                    shutil.rmtree(p) if p.is_dir() and not p.is_symlink() else p.unlink()
+        config_path = folder / "config.json"
+        if config_path.exists():
+            _check_same_config(config_path, config)
+        else:
+            write_atomic(config_path, cfg.dumps(config) + "\n")  # Once: a restart never rewrites it.
+
+
+def _check_same_config(path: pathlib.Path, config: cfg.Config) -> None:
+    """Raise ConfigError unless the folder's config.json is ``config`` (env parameters compared as typed values)."""
+    recover = "pass --overwrite to start over, or delete the folder"
+    try:
+        old = typed_env_params(cfg.from_dict(read_json(path, recover)))
+    except ConfigError:
+        raise
+    except Exception as err:  # A parsable file with missing or mistyped fields.
+        raise ConfigError(f"{path} is not a valid config ({type(err).__name__}: {err}); {recover}") from None
+    if cfg.dumps(old) != cfg.dumps(config):
+        diff = _first_difference(old.to_dict(), config.to_dict())
+        raise ConfigError(
+            f"results folder {path.parent} holds a different config ({diff}); use another --out, or --overwrite"
+        )
+
+
+def typed_env_params(config: cfg.Config) -> cfg.Config:
+    """``config`` with its env parameters as the env's own typed values (``horizon=020`` is ``20``), validated."""
+    import dataclasses
+
+    from jaxdeconf.envs import make
+
+    try:
+        _, params = make(config.env, **config.env_params)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    typed = {k: getattr(params, k) for k in config.env_params}
+    for key, value in typed.items():
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(f"env.{key}={value} is not allowed: need a finite number")
+        if isinstance(value, int) and not isinstance(value, bool) and abs(value) > cfg.INT32_MAX:
+            raise ConfigError(f"env.{key}={value} is too large: need at most {cfg.INT32_MAX}")
+    return dataclasses.replace(config, env_params=typed)
 
 
 def _first_difference(old: Any, new: Any, path: str = "") -> str:
@@ -78,27 +185,67 @@ def _first_difference(old: Any, new: Any, path: str = "") -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point; returns the exit code (2 for bad input)."""
-    args = parse_args(argv)
-    if args.worker is not None:
-        return _worker(args)
+    """Entry point; returns the exit code (2 for bad input, 128 + the signal number when stopped by one)."""
     try:
-        if args.jobs < 0:
-            raise ConfigError(f"--jobs={args.jobs} is not allowed: need 0 (automatic) or a positive integer")
-        algos = cfg.ALGOS if args.algo.strip() == "all" else tuple(a.strip() for a in args.algo.split(",") if a.strip())
-        config = cfg.build(args.env, args.preset, algos, args.seeds, parse_overrides(args.set))
-        from jaxdeconf.envs import make
-
-        try:
-            make(config.env, **config.env_params)
-        except ValueError as err:
-            raise ConfigError(str(err)) from None
-        folder = pathlib.Path(args.out or f"results/{config.env}-{args.preset}")
-        prepare_folder(folder, config, args.overwrite)
-        return _run(config, folder, quiet=args.quiet, jobs=args.jobs)
+        args = parse_args(argv)
+        if args.worker is not None:
+            return _worker(args)
+        # The exact references and the memory check run JAX here, in this process: on one core, like every worker.
+        pin_to_core(available_cores()[0])
+        with _signals_raise():
+            config, folder = _setup(args)
+            lock = prepare_folder(folder, config, args.overwrite)
+            try:
+                return _run(config, folder, quiet=args.quiet, jobs=args.jobs)
+            finally:
+                lock.release()
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    except _Stopped as stop:
+        print(f"error: stopped by {stop.name}; finished chunks are checkpointed: run the same command again to "
+              "resume", file=sys.stderr)
+        return 128 + stop.signum
+
+
+def _setup(args: argparse.Namespace) -> tuple[cfg.Config, pathlib.Path]:
+    """Validate every input (flags, config, env parameters, memory) before anything is written or compiled."""
+    if args.jobs < 0:
+        raise ConfigError(f"--jobs={args.jobs} is not allowed: need 0 (automatic) or a positive integer")
+    if args.out is not None and not args.out.strip():
+        raise ConfigError("--out is empty; give a folder, or leave --out out for results/<env>-<preset>")
+    algos = cfg.ALGOS if args.algo.strip() == "all" else tuple(a.strip() for a in args.algo.split(",") if a.strip())
+    config = typed_env_params(cfg.build(args.env, args.preset, algos, args.seeds, parse_overrides(args.set)))
+    from jaxdeconf.envs import make
+    from jaxdeconf.memory import check_fits
+
+    env, params = make(config.env, **config.env_params)
+    check_fits(config, env, params, args.jobs or min(len(config.algos), len(available_cores())))
+    return config, pathlib.Path(args.out or f"results/{config.env}-{args.preset}")
+
+
+class _Stopped(Exception):  # noqa: N818  (a signal, not an error)
+    """SIGTERM or SIGINT arrived."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+        self.name = signal.Signals(signum).name
+
+
+@contextlib.contextmanager
+def _signals_raise() -> Iterator[None]:
+    """Turn SIGTERM and SIGINT (Ctrl-C) into ``_Stopped`` while the run trains, so workers are stopped with it."""
+    def handler(signum: int, frame: Any) -> None:
+        del frame  # Unused.
+        raise _Stopped(signum)
+
+    old = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 def pin_to_core(core: int) -> None:
@@ -124,6 +271,7 @@ def available_cores() -> list[int]:
 
 def _worker(args: argparse.Namespace) -> int:
     """Internal entry point: train one algorithm of an already prepared results folder."""
+    _die_with_parent()
     if args.core is not None:
         pin_to_core(args.core)
     import logging
@@ -132,17 +280,36 @@ def _worker(args: argparse.Namespace) -> int:
 
     # Orbax logs each damaged file through absl before raising; the one-line error below says it for the user.
     logging.getLogger("absl").setLevel(logging.CRITICAL)
+    # SIGTERM from the parent (or Ctrl-C, which the terminal sends to every process of the run): leave quietly; the
+    # parent prints the one line. Files are written atomically, so stopping at any point is safe.
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, lambda n, _: sys.exit(128 + n))
 
     folder = pathlib.Path(args.out)
-    config = cfg.from_dict(json.loads((folder / "config.json").read_text()))
+    config = cfg.from_dict(json.loads((folder / "config.json").read_text()))  # Checked by the parent.
     try:
-        timing = train_algorithm(config, args.worker, folder / args.worker, progress=not args.quiet,
-                                 position=args.position)
+        with writable(folder / args.worker):
+            (folder / args.worker).mkdir(exist_ok=True)
+            lock = FolderLock(folder / args.worker, command_line())  # Even an orphaned worker never trains twice.
+            timing = train_algorithm(config, args.worker, folder / args.worker, progress=not args.quiet,
+                                     position=args.position)
+            lock.release()
     except ConfigError as err:  # E.g. an unreadable checkpoint: one line, and the parent adds none.
         print(f"error: {err}", file=sys.stderr, flush=True)
         return 2
     print(f"[{args.worker}] compile {timing['compile_s']:.1f} s, run {timing['run_s']:.1f} s", flush=True)
     return 0
+
+
+def _die_with_parent() -> None:
+    """Have Linux send this worker SIGTERM when its parent dies (even by SIGKILL), so no worker outlives its run."""
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        with contextlib.suppress(OSError, AttributeError):
+            ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # 1 = PR_SET_PDEATHSIG.
+    if os.getppid() == 1:  # The parent died before the call above.
+        sys.exit(128 + signal.SIGTERM)
 
 
 def _train_workers(folder: pathlib.Path, queue: list[str], cores: list[int], jobs: int, quiet: bool) -> dict[str, int]:
@@ -151,6 +318,30 @@ def _train_workers(folder: pathlib.Path, queue: list[str], cores: list[int], job
     codes: dict[str, int] = {}
     running: dict[int, tuple[str, subprocess.Popen]] = {}  # Slot (a core and a progress-bar row) -> worker.
     queue = list(queue)
+    try:
+        _schedule(folder, queue, cores, jobs, quiet, running, codes)
+    finally:  # Normally nothing is left; on SIGTERM or Ctrl-C, the workers stop with the run.
+        _stop(proc for _, proc in running.values())
+    return codes
+
+
+def _stop(procs: Iterable[subprocess.Popen], grace_s: float = 20.0) -> None:
+    """SIGTERM the workers still running, wait up to ``grace_s`` for them, then SIGKILL any left."""
+    procs = [p for p in procs if p.poll() is None]
+    for p in procs:
+        p.terminate()
+    deadline = time.monotonic() + grace_s
+    for p in procs:
+        try:
+            p.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
+def _schedule(folder: pathlib.Path, queue: list[str], cores: list[int], jobs: int, quiet: bool,
+              running: dict[int, tuple[str, subprocess.Popen]], codes: dict[str, int]) -> None:
+    """Start a worker in each free slot until the queue is empty, collecting exit codes."""
     while queue or running:
         for slot in range(jobs):
             if slot not in running and queue:
@@ -164,7 +355,6 @@ def _train_workers(folder: pathlib.Path, queue: list[str], cores: list[int], job
         for slot in finished:
             algo, proc = running.pop(slot)
             codes[algo] = proc.returncode
-    return codes
 
 
 def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0) -> int:
@@ -173,14 +363,9 @@ def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0) -
     from jaxdeconf import results
 
     cores = available_cores()
-    pin_to_core(cores[0])  # The exact references below run here, in this process.
+    _check_writable(folder, config.algos)
+    queue = [algo for algo in config.algos if not _finished(config, folder, algo)]  # Damaged files: before any work.
     refs = _references(config, folder)
-    queue = []
-    for algo in config.algos:
-        if (folder / algo / "DONE").exists():
-            print(f"[{algo}] already finished in {folder}; kept as is (use --overwrite to retrain)")
-        else:
-            queue.append(algo)
     codes = _train_workers(folder, queue, cores, jobs or len(cores), quiet)
     if 2 in codes.values():
         return 2  # A worker already printed its one-line error.
@@ -189,22 +374,55 @@ def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0) -
         print(f"error: training failed for {', '.join(failed)}; its checkpoints are kept, so running the same "
               "command again resumes it", file=sys.stderr)
         return 1
-    table = results.summarize(folder, config, refs)
-    print(results.write_summary(folder, table, refs))
-    for path in results.plot(folder, config, refs):
-        print(f"wrote {path}")
+    with writable(folder):
+        table = results.summarize(folder, config, refs)
+        print(results.write_summary(folder, table, refs))
+        for path in results.plot(folder, config, refs):
+            print(f"wrote {path}")
     return 0
 
 
+def _finished(config: cfg.Config, folder: pathlib.Path, algo: str) -> bool:
+    """Whether ``algo`` finished in ``folder`` with all its files intact; a finished run whose curves are missing or
+    damaged is not (its worker recomputes them), one whose metrics are is an error (nothing can recompute them)."""
+    from jaxdeconf.train import check_rows, curves_ok
+
+    if not (folder / algo / "DONE").exists():
+        return False
+    path = folder / algo / "metrics.jsonl"
+    check_rows(path, config, algo, read_rows(path), config.train.iterations)
+    if not curves_ok(folder / algo / "curves.npz"):
+        print(f"[{algo}] finished, but its curves.npz is missing or damaged: recomputing it from the checkpoints")
+        return False
+    print(f"[{algo}] already finished in {folder}; kept as is (use --overwrite to retrain)")
+    return True
+
+
+def _check_writable(folder: pathlib.Path, algos: tuple[str, ...]) -> None:
+    """Refuse at once a folder the workers could not write (orbax would retry for minutes, then fail at length)."""
+    for path in [folder, *(folder / a for a in algos), *(folder / a / "checkpoints" for a in algos)]:
+        if path.is_dir() and not os.access(path, os.W_OK | os.X_OK):
+            raise ConfigError(f"cannot write {path}: permission denied; make it writable, or use another --out")
+
+
+# What the summary and figures read from references.json.
+REFERENCE_KEYS = {f"{kind}_{what}" for kind in ("interventional", "conditional")
+                  for what in ("online", "expert", "count", "count_se")} | {"expert_count"}
+
+
 def _references(config: cfg.Config, folder: pathlib.Path) -> dict[str, Any] | None:
-    """Exact bandit references (computed once per folder and cached in references.json)."""
+    """Exact bandit references (computed once per folder and cached in references.json; recomputed if damaged)."""
     if config.env != "bandit":
         return None
     import numpy as np
 
     path = folder / "references.json"
     if path.exists():
-        return {k: np.asarray(v) for k, v in json.loads(path.read_text()).items()}
+        with contextlib.suppress(ConfigError, AttributeError, TypeError, ValueError):
+            refs = {k: np.asarray(v, np.float64) for k, v in read_json(path, "").items()}
+            if set(refs) >= REFERENCE_KEYS:
+                return refs
+        print(f"{path} is damaged; computing it again")  # A cache of exact values: nothing is lost.
     import jax
 
     from jaxdeconf.envs import make
@@ -213,7 +431,8 @@ def _references(config: cfg.Config, folder: pathlib.Path) -> dict[str, Any] | No
     _, params = make(config.env, **config.env_params)
     refs = jax.jit(reference_curves, static_argnums=(1, 2))(jax.random.key(12345), params, 20000)
     refs = {k: np.asarray(v) for k, v in refs.items()}
-    path.write_text(json.dumps({k: v.tolist() for k, v in refs.items()}) + "\n")
+    with writable(path):
+        write_atomic(path, json.dumps({k: v.tolist() for k, v in refs.items()}) + "\n")
     return refs
 
 

@@ -3,7 +3,9 @@ checkpoints, and resume from the last checkpoint when a run is started again on 
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import io
 import json
 import pathlib
 import time
@@ -17,8 +19,9 @@ from tqdm import tqdm
 from jaxdeconf.algos import make_algorithm
 from jaxdeconf.algos.base import Algorithm, TrainState
 from jaxdeconf.checkpoint import Checkpoints
-from jaxdeconf.config import Config
+from jaxdeconf.config import Config, ConfigError
 from jaxdeconf.envs import make
+from jaxdeconf.files import append_lines, dumps_row, parse_row, remove_temporaries, write_atomic
 
 CURVES = ("p_best_online", "p_best_expert")
 
@@ -55,12 +58,117 @@ def chunk_rows(name: str, config: Config, start: int, per_iter: dict, evals: dic
     return rows
 
 
-def _truncate_metrics(path: pathlib.Path, done: int) -> None:
-    """Drop rows past ``done`` iterations (written by a chunk whose checkpoint never landed)."""
-    if not path.exists():
-        return
-    keep = [line for line in path.read_text().splitlines() if line and json.loads(line)["iteration"] <= done]
-    path.write_text("".join(line + "\n" for line in keep))
+class DivergedError(ConfigError):
+    """A non-finite loss or return: the run stops, keeping its last good checkpoint."""
+
+
+def check_finite(name: str, config: Config, start: int, per_iter: dict, evals: dict) -> None:
+    """Raise DivergedError naming the algorithm, seeds and first iteration where a loss or return is NaN or infinite.
+
+    Policy losses are NaN by design during warm-up (no policy update yet), so NaN counts only after it.
+    """
+    length = next(iter(per_iter.values())).shape[1] if per_iter else 1
+    for key in sorted(k for k in {**per_iter, **evals} if "loss" in k or "return" in k):
+        if key in per_iter:
+            value = np.asarray(per_iter[key], np.float64)  # [seeds, length]
+            iteration = start + 1 + np.arange(length)
+            bad = np.isinf(value) | (np.isnan(value) & (iteration > config.train.warmup)[None])
+        else:  # An evaluation belongs to its chunk's last iteration, and is never NaN by design.
+            value = np.asarray(evals[key], np.float64)[:, None]
+            iteration = np.array([start + length])
+            bad = ~np.isfinite(value)
+        if bad.any():
+            seeds = [config.seed_start + s for s in np.flatnonzero(bad.any(axis=1))]
+            raise DivergedError(
+                f"{name} diverged: {key} is {value[bad][0]} at iteration {int(iteration[bad.any(axis=0)][0])} for "
+                f"seed(s) {', '.join(map(str, seeds))}; training stopped and its last good checkpoint "
+                f"(iteration {start}) is kept; lower the learning rates (train.policy_lr, train.encoder_lr) and "
+                "start over with --overwrite"
+            )
+
+
+def resume_metrics(path: pathlib.Path, config: Config, name: str, done: int) -> None:
+    """Make ``metrics.jsonl`` hold exactly the rows of the ``done`` checkpointed iterations.
+
+    Rows past ``done`` (a chunk whose checkpoint never landed), a partial last line (a kill mid-append) and unreadable
+    lines are dropped by an atomic rewrite, never in place; rows missing before ``done`` are an error, since nothing
+    can recompute them.
+    """
+    lines = path.read_bytes().decode(errors="replace").splitlines() if path.exists() else []
+    keep = [line for line in lines if (row := parse_row(line)) is not None and row["iteration"] <= done]
+    check_rows(path, config, name, [parse_row(line) for line in keep], done)
+    if len(keep) != len(lines):
+        write_atomic(path, "".join(line + "\n" for line in keep))
+
+
+def check_rows(path: pathlib.Path, config: Config, name: str, rows: list[dict], done: int) -> None:
+    """Raise ConfigError unless ``rows`` are exactly one per seed and iteration 1 .. ``done``."""
+    expected = {(config.seed_start + s, i) for s in range(config.seeds) for i in range(1, done + 1)}
+    found = [(r["seed"], r["iteration"]) for r in rows]
+    if len(found) != len(expected) or set(found) != expected:
+        raise ConfigError(
+            f"{path} is damaged: it holds {len(set(found) & expected)} of the {len(expected)} rows of the "
+            f"{done} iterations done{' (some twice)' if len(set(found)) != len(found) else ''}; delete "
+            f"{path.parent} to retrain {name}, or pass --overwrite to start over"
+        )
+
+
+def curves_ok(path: pathlib.Path) -> bool:
+    """Whether ``curves.npz`` exists and holds every curve, readable."""
+    try:
+        with np.load(path) as data:
+            return all(np.asarray(data[k]).ndim == 2 for k in CURVES)
+    except Exception:  # Any damage, whatever numpy raises for it, means the same: recompute it.
+        return False
+
+
+@dataclasses.dataclass
+class _Loop:
+    """The compiled chunks of one run and the time spent in them."""
+
+    algo: Algorithm
+    config: Config
+    full: Any = None  # The compiled full-length chunk.
+    compile_s: float = 0.0
+    run_s: float = 0.0
+
+    def compile(self, states: TrainState) -> None:
+        """Compile the full-length chunk (only a shorter last chunk compiles again)."""
+        t0 = time.perf_counter()
+        self.full = compiled_chunk(self.algo, min(self.config.train.chunk, self.config.train.iterations)).lower(
+            states).compile()
+        self.compile_s = time.perf_counter() - t0
+
+    def chunk(self, states: TrainState, done: int) -> tuple[TrainState, int, dict, dict]:
+        """Run the chunk that starts after ``done`` iterations: (states, its length, per-iteration and eval outputs)."""
+        t = self.config.train
+        length = min(t.chunk, t.iterations - done)
+        fn = self.full if length == min(t.chunk, t.iterations) else compiled_chunk(self.algo, length)
+        t1 = time.perf_counter()
+        states, per_iter, evals = fn(states)
+        jax.block_until_ready(states)
+        self.run_s += time.perf_counter() - t1
+        return states, length, per_iter, evals
+
+
+def _save_curves(folder: pathlib.Path, evals: dict) -> None:
+    """Write the last evaluation's curves atomically."""
+    buf = io.BytesIO()
+    np.savez(buf, **{k: np.asarray(evals[k]) for k in CURVES})
+    write_atomic(folder / "curves.npz", buf.getvalue())
+
+
+def _recompute_curves(loop: _Loop, ckpt: Checkpoints, init: TrainState, folder: pathlib.Path) -> None:
+    """Rebuild a finished run's ``curves.npz`` by rerunning its last chunk from the checkpoint before it (or from
+    the start), exactly as it first ran: the final checkpoint's key is already past the evaluation's key."""
+    t = loop.config.train
+    last = t.iterations - ((t.iterations - 1) % t.chunk + 1)  # Where the last chunk started.
+    if last and last not in ckpt.all_steps():
+        raise ConfigError(f"{folder / 'curves.npz'} is missing or damaged and the checkpoint of iteration {last} "
+                          f"needed to recompute it is gone; delete {folder} to retrain, or pass --overwrite")
+    states = ckpt.restore(last, init) if last else init
+    _, _, _, evals = loop.chunk(states, last)
+    _save_curves(folder, jax.tree.map(np.asarray, evals))
 
 
 def train_algorithm(
@@ -68,41 +176,51 @@ def train_algorithm(
 ) -> dict[str, Any]:
     """Train ``name`` on all seeds into ``folder``, resuming from its last checkpoint; return timing info.
 
-    ``position`` is the progress bar's row when several trainings share a terminal.
+    ``position`` is the progress bar's row when several trainings share a terminal. Each chunk appends its metrics
+    rows, then saves a checkpoint; the last chunk writes ``curves.npz`` before its checkpoint, and ``DONE`` comes
+    last, so a kill at any moment leaves a folder the next start resumes to the same results.
     """
     folder.mkdir(parents=True, exist_ok=True)
+    remove_temporaries(folder)
     algo = build_algorithm(config, name)
-    metrics_path = folder / "metrics.jsonl"
     ckpt = Checkpoints(folder / "checkpoints")
-    states: TrainState = jax.jit(jax.vmap(algo.init))(seed_keys(config))
-    done = ckpt.latest_step() or 0
-    if done:
-        states = ckpt.restore(done, states)
-    _truncate_metrics(metrics_path, done)
+    try:
+        init = jax.jit(jax.vmap(algo.init))(seed_keys(config))
+        done = ckpt.latest_step() or 0
+        states = ckpt.restore(done, init) if done else init
+        resume_metrics(folder / "metrics.jsonl", config, name, done)
+        loop = _Loop(algo, config)
+        finished = done == config.train.iterations and curves_ok(folder / "curves.npz")
+        if not finished:  # A run killed between its last checkpoint and DONE has nothing left to compile.
+            loop.compile(states)
+            _train_loop(loop, ckpt, states, done, name, folder, progress, position)
+            if not curves_ok(folder / "curves.npz"):
+                _recompute_curves(loop, ckpt, init, folder)
+    finally:
+        ckpt.close()
+    timing = {"compile_s": loop.compile_s, "run_s": loop.run_s}
+    write_atomic(folder / "DONE", json.dumps(timing) + "\n")
+    return timing
 
-    t = config.train
-    t0 = time.perf_counter()
-    full = compiled_chunk(algo, t.chunk).lower(states).compile()
-    compile_s = time.perf_counter() - t0
+
+def _train_loop(loop: _Loop, ckpt: Checkpoints, states: TrainState, done: int, name: str, folder: pathlib.Path,
+                progress: bool, position: int) -> None:
+    """Train chunk by chunk from ``done`` to the end: check, append metrics, (last chunk: curves), checkpoint."""
+    config, t = loop.config, loop.config.train
     bar = tqdm(total=t.iterations, initial=done, desc=f"{config.env}/{name} x{config.seeds} seeds",
                disable=not progress, unit="it", dynamic_ncols=True, position=position)
     if progress:
-        bar.write(f"[{name}] compiled one {t.chunk}-iteration chunk for {config.seeds} seeds in {compile_s:.1f} s")
-    run_s = 0.0
-    last_eval: dict[str, np.ndarray] = {}
+        bar.write(f"[{name}] compiled one {t.chunk}-iteration chunk for {config.seeds} seeds in {loop.compile_s:.1f} s")
     while done < t.iterations:
-        length = min(t.chunk, t.iterations - done)
-        fn = full if length == t.chunk else compiled_chunk(algo, length)  # Only a shorter last chunk recompiles.
-        t1 = time.perf_counter()
-        states, per_iter, evals = fn(states)
-        jax.block_until_ready(states)
-        run_s += time.perf_counter() - t1
+        states, length, per_iter, evals = loop.chunk(states, done)
+        per_iter, evals = jax.tree.map(np.asarray, per_iter), jax.tree.map(np.asarray, evals)
+        check_finite(name, config, done, per_iter, evals)
         rows = chunk_rows(name, config, done, per_iter, evals)
-        with metrics_path.open("a") as f:
-            f.writelines(json.dumps(r) + "\n" for r in rows)
+        append_lines(folder / "metrics.jsonl", [dumps_row(r) for r in rows])
         done += length
+        if done == t.iterations:
+            _save_curves(folder, evals)  # Before the final checkpoint: a run with that checkpoint has its curves.
         ckpt.save(done, states)
-        last_eval = {k: np.asarray(v) for k, v in evals.items()}
         if progress:
             bar.update(length)
             last = [r for r in rows if r["iteration"] == done]
@@ -110,8 +228,3 @@ def train_algorithm(
             bar.set_postfix({k: f"{np.nanmean(v):.3g}" for k, v in shown.items() if not np.isnan(v).all()},
                             refresh=True)  # Warm-up iterations have no policy loss yet.
     bar.close()
-    ckpt.close()
-    if last_eval:
-        np.savez(folder / "curves.npz", **{k: last_eval[k] for k in CURVES})
-    (folder / "DONE").write_text(json.dumps({"compile_s": compile_s, "run_s": run_s}) + "\n")
-    return {"compile_s": compile_s, "run_s": run_s}
