@@ -219,6 +219,5 @@ def plot_comparison(folder: pathlib.Path, config: Config, refs: dict[str, Any] |
     ax.legend(fontsize=8)
     fig.tight_layout()
     path = folder / "comparison.png"
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save_figure(fig, path)
     return path
