@@ -64,7 +64,7 @@ def _env(cache: pathlib.Path) -> dict[str, str]:
 
 
 def _cli(folder: pathlib.Path, cache: pathlib.Path, moment: str = "none", worker: bool = False,
-         timeout: float = 400) -> int:
+         timeout: float = 1200) -> int:
     """Run the CLI (or, with ``worker``, one worker of a prepared folder) in a subprocess with the kill ``moment``."""
     argv = ["--worker", "bc", "--out", str(folder), "--quiet"] if worker else [*CLI, "--out", str(folder)]
     proc = subprocess.run([sys.executable, str(HELPER), moment, str(ITERATIONS), *argv], env=_env(cache),
@@ -109,7 +109,7 @@ MOMENTS = [
 ]
 
 
-@pytest.mark.timeout(900)
+@pytest.mark.timeout(2400)
 @pytest.mark.parametrize("moment", MOMENTS)
 def test_kill_then_rerun_is_identical(uninterrupted, moment):
     base, cache, expected = uninterrupted
@@ -192,7 +192,7 @@ def test_diverging_run_keeps_last_good_checkpoint(tmp_path, tiny_config):
     assert all(r["iteration"] <= done for r in rows) and not (tmp_path / "bc" / "DONE").exists()
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(900)
 @pytest.mark.parametrize("signum", [signal.SIGTERM, pytest.param(signal.SIGINT, marks=pytest.mark.slow)])
 def test_signal_stops_workers_with_one_line(tmp_path, signum):
     """SIGTERM to the run (or Ctrl-C, which a terminal sends to every process of it) stops its workers too."""
@@ -200,7 +200,7 @@ def test_signal_stops_workers_with_one_line(tmp_path, signum):
     proc = subprocess.Popen([sys.executable, "-m", "jaxdeconf.run", *CLI, "--out", str(folder)],
                             start_new_session=True, stderr=subprocess.PIPE, text=True)
     lock = folder / "bc" / ".lock"
-    deadline = time.monotonic() + 200
+    deadline = time.monotonic() + 600
     while not (lock.exists() and lock.read_text().startswith("pid")) and time.monotonic() < deadline:
         time.sleep(0.2)
     worker = int(lock.read_text().split()[1].rstrip(","))
