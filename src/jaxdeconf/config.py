@@ -95,7 +95,7 @@ def _locomotion_cpu(horizon: int, prediction_steps: int) -> dict[str, Any]:
         "train.batch_size": 8,
         "train.buffer_episodes": 128,
         # The paper's 100 + 100 gradient steps per iteration: with 16 + 16, dil's latent policy never learnt to read
-        # the target from z (it held whatever speed it reached; README) and stayed below bc.
+        # the target from z (it held whatever speed it reached) and stayed below bc.
         "train.policy_steps": 100,
         "train.encoder_steps": 100,
         "train.policy_lr": 1e-3,
@@ -107,7 +107,7 @@ def _locomotion_cpu(horizon: int, prediction_steps: int) -> dict[str, Any]:
 
 
 def _locomotion_paper(latent: int, prediction_steps: int, buffer_episodes: int) -> dict[str, Any]:
-    """SPEC.md's reference configuration for the Brax envs."""
+    """The paper's configuration for the Brax envs (meant for a GPU)."""
     return {
         "model.width": 128,
         "model.action_embed": 32,
@@ -195,7 +195,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             "train.prediction_steps": 10,
             "train.eval_episodes": 32,
         },
-        # SPEC.md's reference configuration (for a GPU): GRU 500, latent 64, K = 50, replay of 2e6 transitions.
+        # The paper's configuration (for a GPU): GRU 500, latent 64, K = 50, replay of 2e6 transitions.
         "paper": {
             "model.width": 128,
             "model.action_embed": 32,
@@ -218,13 +218,13 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "half_cheetah": {
         # Reduced for a 2-core CPU: 200-step episodes (the paper's are 1000), small nets, 40 iterations of 8 episodes.
         "cpu": _locomotion_cpu(horizon=200, prediction_steps=10),
-        # SPEC.md's configuration (for a GPU): GRU 500, latent 64, K = 10, 2000 episodes = 2e6 transitions of replay.
+        # The paper's configuration (for a GPU): GRU 500, latent 64, K = 10, 2000 episodes = 2e6 transitions of replay.
         "paper": _locomotion_paper(latent=64, prediction_steps=10, buffer_episodes=2000),
     },
     "ant_goal": {
         # Reduced for a 2-core CPU: small nets, K = 10 (the paper's is 50), 40 iterations of 8 episodes.
         "cpu": _locomotion_cpu(horizon=200, prediction_steps=10),
-        # SPEC.md's configuration (for a GPU): latent 8, K = 50; replay capped at 2000 episodes (4e5 transitions,
+        # The paper's configuration (for a GPU): latent 8, K = 50; replay capped at 2000 episodes (4e5 transitions,
         # against the reference code's 2e6) so that a seed's buffers fit next to others on one GPU.
         "paper": _locomotion_paper(latent=8, prediction_steps=50, buffer_episodes=2000),
     },
