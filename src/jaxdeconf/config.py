@@ -311,18 +311,27 @@ def validate(config: Config) -> None:
         )
 
 
+def env_presets(env: str) -> dict[str, dict[str, Any]]:
+    """A built-in env's presets; for a user's ``module:Class`` env, the class's ``presets`` over LunarLander's."""
+    if env in PRESETS:
+        return PRESETS[env]
+    from jaxdeconf.envs import resolve
+
+    try:
+        constructor = resolve(env)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    return {**PRESETS["lunar_lander"], **getattr(constructor, "presets", {})}
+
+
 def build(env: str, preset: str, algos: tuple[str, ...], seeds: int, overrides: dict[str, Any]) -> Config:
     """Resolve a preset plus overrides into a validated Config."""
     env = ENV_ALIASES.get(env, env)
-    if env not in PRESETS:
-        from jaxdeconf.envs import REGISTRY
-
-        allowed = sorted(REGISTRY)
-        raise ConfigError(f"unknown env {env!r}; allowed: {', '.join(allowed)}")
-    if preset not in PRESETS[env]:
-        raise ConfigError(f"unknown preset {preset!r} for env {env!r}; allowed: {', '.join(PRESETS[env])}")
+    presets = env_presets(env)
+    if preset not in presets:
+        raise ConfigError(f"unknown preset {preset!r} for env {env!r}; allowed: {', '.join(presets)}")
     config = Config(env=env, algos=algos, seeds=seeds)
-    config = apply_overrides(config, PRESETS[env][preset])
+    config = apply_overrides(config, presets[preset])
     config = apply_overrides(config, overrides)
     validate(config)
     return config

@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
             make(config.env, **config.env_params)
         except ValueError as err:
             raise ConfigError(str(err)) from None
-        folder = pathlib.Path(args.out or f"results/{config.env}-{args.preset}")
+        folder = pathlib.Path(args.out or f"results/{config.env.rpartition(':')[2]}-{args.preset}")
         prepare_folder(folder, config, args.overwrite)
         return _run(config, folder, quiet=args.quiet, jobs=args.jobs)
     except ConfigError as err:
