@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import CARTPOLE
 from jaxdeconf.envs import EnvCheckError, Observation, check_env, make, register, resolve
 from jaxdeconf.envs.bandit import Bandit, BanditParams, BanditState
 
@@ -13,7 +14,7 @@ from jaxdeconf.config import ConfigError, build
 pytestmark = pytest.mark.timeout(900)
 
 
-@pytest.mark.parametrize("name", ["bandit", "lunar_lander", "examples/cartpole.py:ConfoundedCartPole"])
+@pytest.mark.parametrize("name", ["bandit", "lunar_lander", CARTPOLE])
 def test_check_env_passes(name):
     env, params = make(name)
     check_env(env, params)
