@@ -73,7 +73,8 @@ def test_policy_through_the_wrappers_matches_the_compiled_rollout(trained):
         total += reward
     np.testing.assert_array_equal(total, expected)
 
-    env = GymEnv("bandit", view=policy.view, horizon=10)  # One env reproduces the rollout of one episode.
+    env = policy.gym_env()  # One env reproduces the rollout of one episode.
+    assert isinstance(env, GymEnv) and env.core.horizon == 10
     single, _ = rollout(policy.env, policy.env_params, policy.actor, policy.params, jax.random.key(seed), 1)
     obs, _ = env.reset(seed=seed)
     state, done, episode = policy.initial_state(seed=seed), False, 0.0

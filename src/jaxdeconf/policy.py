@@ -23,7 +23,7 @@ from flax import struct
 from jaxdeconf import config as cfg
 from jaxdeconf.checkpoint import Checkpoints
 from jaxdeconf.envs.base import NormalizedViews, Observation
-from jaxdeconf.gym import step_key
+from jaxdeconf.gym import GymEnv, GymVectorEnv, step_key
 from jaxdeconf.models import action_features, sample
 
 
@@ -49,6 +49,18 @@ class Policy:
         self.view = getattr(self.actor, "view", "imitator")
         self.horizon = self.env.horizon(self.env_params)
         self._act = jax.jit(self._act_impl)
+
+    @property
+    def raw_env(self) -> Any:
+        """The environment the policy acts in, without the algorithm's view standardisation."""
+        return self.env.env if isinstance(self.env, NormalizedViews) else self.env
+
+    def gym_env(self, num_envs: int | None = None) -> Any:
+        """The env it was trained on, with the same parameters and view, as a ``gymnasium.Env`` (or, with
+        ``num_envs``, a ``gymnasium.vector.VectorEnv``)."""
+        if num_envs is None:
+            return GymEnv(self.raw_env, self.env_params, view=self.view)
+        return GymVectorEnv(self.raw_env, num_envs, self.env_params, view=self.view)
 
     def initial_state(self, seed: int = 0, num_envs: int = 1) -> PolicyState:
         """The state at the start of an episode of each of ``num_envs`` envs; ``seed`` fixes the sampled actions."""

@@ -17,7 +17,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdeconf.config import ConfigError
-from jaxdeconf.gym import GymVectorEnv
 from jaxdeconf.policy import Policy, load_policy
 
 
@@ -34,8 +33,7 @@ def belief(policy: Policy, carry: Any) -> np.ndarray | None:
 def record(policy: Policy, episodes: int, seed: int) -> dict[str, Any]:
     """Run ``episodes`` episodes through the gymnasium wrapper; keep states [T+1], actions, rewards, head outputs and
     beliefs and valid masks [T] (all with the episode axis second) and θ [N]."""
-    venv = GymVectorEnv(policy.env.env if hasattr(policy.env, "stats") else policy.env, episodes,
-                        params=policy.env_params, view=policy.view)
+    venv = policy.gym_env(episodes)
     obs, _ = venv.reset(seed=seed)
     state = policy.initial_state(seed=seed, num_envs=episodes)
     rec: dict[str, list] = {"state": [venv.core.slots.state], "action": [], "reward": [], "head": [], "belief": [],
@@ -144,8 +142,8 @@ def render_lander(rec: dict[str, Any], env: Any, params: Any, algo: str, path: p
     for i in range(rec["theta"].shape[0]):
         length = int(rec["valid"][:, i].sum())
         frames += [(i, t) for t in range(0, min(length, len(rec["action"])), every)]
-    fig, ax = plt.subplots(figsize=(3.2, 2.3))
-    fig.subplots_adjust(0, 0, 1, 0.88)
+    fig, ax = plt.subplots(figsize=(3.6, 2.7))
+    fig.subplots_adjust(0, 0, 1, 0.84)
 
     def draw(frame: tuple[int, int]) -> None:
         i, t = frame
@@ -188,7 +186,7 @@ def render(folder: str | pathlib.Path, algo: str, episodes: int = 4, seed: int =
     folder = pathlib.Path(folder)
     policy = load_policy(folder, algo, seed=0 if run_seed is None else run_seed)
     rec = record(policy, episodes, seed)
-    env = policy.env.env if hasattr(policy.env, "stats") else policy.env
+    env = policy.raw_env
     target = pathlib.Path(out) if out else folder / "render"
     target.mkdir(parents=True, exist_ok=True)
     if env.name == "bandit":
