@@ -75,7 +75,7 @@ def test_env_from_user_module_by_name(tmp_path, monkeypatch):
     (tmp_path / "my_envs.py").write_text(
         "from jaxdeconf.envs.bandit import Bandit\n\n"
         "class SmallBandit(Bandit):\n"
-        "    presets = {'cpu': {'train.iterations': 7}}\n"
+        "    presets = {'cpu': {'train.iterations': 7, 'train.warmup': 1}}\n"
     )
     monkeypatch.syspath_prepend(str(tmp_path))
     env, params = make("my_envs:SmallBandit", horizon=10)
