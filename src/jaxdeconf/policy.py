@@ -11,6 +11,7 @@ learnt on standardised views. ``initial_state(seed=s)`` draws the action keys ``
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import pathlib
 from typing import Any
@@ -21,6 +22,7 @@ import numpy as np
 from flax import struct
 
 from jaxdeconf import config as cfg
+from jaxdeconf.actors import ExpertActor
 from jaxdeconf.checkpoint import Checkpoints
 from jaxdeconf.envs.base import NormalizedViews, Observation
 from jaxdeconf.gym import GymEnv, GymVectorEnv, step_key
@@ -46,7 +48,7 @@ class Policy:
         self.actor = algorithm.actor()
         self.params = actor_params
         self.space = self.env.action_space(self.env_params)
-        self.view = getattr(self.actor, "view", "imitator")
+        self.view = "expert" if isinstance(self.actor, ExpertActor) else getattr(self.actor, "view", "imitator")
         self.horizon = self.env.horizon(self.env_params)
         self._act = jax.jit(self._act_impl)
 
@@ -136,6 +138,27 @@ def load_state(folder: str | pathlib.Path, algo: str) -> tuple[Any, Any, cfg.Con
     states = ckpt.restore(step, jax.jit(jax.vmap(algorithm.init))(seed_keys(config)))
     ckpt.close()
     return algorithm, states, config
+
+
+@dataclasses.dataclass(frozen=True)
+class ExpertAlgorithm:
+    """The env's own θ-aware expert in the shape of an algorithm (``env``, ``env_params``, ``actor()``)."""
+
+    env: Any
+    env_params: Any
+
+    def actor(self) -> ExpertActor:
+        """The expert acting on the expert's view."""
+        return ExpertActor(self.env, self.env_params)
+
+
+def expert_policy(folder: str | pathlib.Path) -> Policy:
+    """The expert of the env a results folder was trained on, as a Policy (it needs no checkpoint)."""
+    from jaxdeconf.envs import make
+
+    config = load_config(folder)
+    env, params = make(config.env, **config.env_params)
+    return Policy(ExpertAlgorithm(env, params), None)
 
 
 def load_policy(folder: str | pathlib.Path, algo: str, seed: int = 0) -> Policy:

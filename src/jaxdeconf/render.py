@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdeconf.config import ConfigError
-from jaxdeconf.policy import Policy, load_policy
+from jaxdeconf.policy import Policy, expert_policy, load_policy
 
 
 def belief(policy: Policy, carry: Any) -> np.ndarray | None:
@@ -184,7 +184,10 @@ def render(folder: str | pathlib.Path, algo: str, episodes: int = 4, seed: int =
            out: str | pathlib.Path | None = None) -> list[pathlib.Path]:
     """Render ``episodes`` episodes (env seed ``seed``) of ``algo`` trained with ``run_seed`` in ``folder``."""
     folder = pathlib.Path(folder)
-    policy = load_policy(folder, algo, seed=0 if run_seed is None else run_seed)
+    if algo == "expert":
+        policy = expert_policy(folder)
+    else:
+        policy = load_policy(folder, algo, seed=0 if run_seed is None else run_seed)
     rec = record(policy, episodes, seed)
     env = policy.raw_env
     target = pathlib.Path(out) if out else folder / "render"
@@ -202,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code (2 for bad input)."""
     p = argparse.ArgumentParser(prog="python -m jaxdeconf.render", description=__doc__.splitlines()[0])
     p.add_argument("folder", help="a results folder written by python -m jaxdeconf.run")
-    p.add_argument("--algo", default="dil", help="which trained imitator (default: dil)")
+    p.add_argument("--algo", default="dil", help="which trained imitator (default: dil), or expert (the env's own)")
     p.add_argument("--episodes", type=int, default=4, help="episodes to render (default: 4)")
     p.add_argument("--seed", type=int, default=0, help="the episodes' seed (default: 0)")
     p.add_argument("--run-seed", type=int, default=None, help="which training seed's imitator (default: the first)")
