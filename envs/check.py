@@ -8,6 +8,7 @@ actions, and that the imitator's view carries no copy of θ. A failed check rais
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Any
 
 import jax
@@ -48,9 +49,11 @@ def _check_static(env: Environment, params: Any) -> tuple[int, ActionSpace, Obse
 
 
 def _attribute_fingerprint(env: Environment) -> dict[str, Any]:
-    """What ``reset``/``step`` must leave alone: each attribute's identity, and the length of mutable containers."""
+    """What ``reset``/``step`` must leave alone: each attribute's identity, and the length of mutable containers.
+    ``functools.cached_property`` values are left out: computing one on first use (a loaded expert) is allowed."""
     return {name: (id(value), len(value) if isinstance(value, list | dict | set) else None)
-            for name, value in vars(env).items()}
+            for name, value in vars(env).items()
+            if not isinstance(getattr(type(env), name, None), functools.cached_property)}
 
 
 def _jaxpr_fingerprint(fn: Any, *args: Any) -> tuple[str, list[np.ndarray]]:
@@ -66,10 +69,18 @@ def _same_fingerprint(a: tuple[str, list[np.ndarray]], b: tuple[str, list[np.nda
     )
 
 
-def _check_purity(env: Environment, params: Any) -> None:
+def _check_attributes(env: Environment, before: dict[str, Any], where: str) -> None:
+    """The env object's attributes are as they were before ``where`` ran."""
+    after = _attribute_fingerprint(env)
+    changed = sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k))
+    if changed:
+        raise _fail(env, f"{where} is not pure: it changed the environment object's attribute(s) "
+                         f"{', '.join(changed)}; keep everything that changes in the state")
+
+
+def _check_purity(env: Environment, params: Any, before: dict[str, Any]) -> None:
     """Trace reset and step twice each: the traces must match and the env object must be left unchanged."""
     key = jax.random.key(0)
-    before = _attribute_fingerprint(env)
     state, _ = jax.eval_shape(env.reset, key, params)
     space = env.action_space(params)
     action = (jax.ShapeDtypeStruct((), jnp.int32) if space.discrete
@@ -80,11 +91,7 @@ def _check_purity(env: Environment, params: Any) -> None:
         if not _same_fingerprint(first, second):
             raise _fail(env, f"{name} is not pure: two traces with the same inputs gave different programs or "
                              "constants (Python-side state, numpy randomness or a counter read inside it?)")
-        after = _attribute_fingerprint(env)
-        changed = sorted(k for k in set(before) | set(after) if before.get(k) != after.get(k))
-        if changed:
-            raise _fail(env, f"{name} is not pure: it changed the environment object's attribute(s) "
-                             f"{', '.join(changed)}; keep everything that changes in the state")
+        _check_attributes(env, before, name)
 
 
 def _episode(env: Environment, params: Any, key: jax.Array) -> dict[str, Any]:
@@ -205,11 +212,12 @@ def check_env(env: Environment, params: Any | None = None, samples: int = 64) ->
     """
     params = env.default_params() if params is None else params
     horizon, space, sizes = _check_static(env, params)
-    _check_purity(env, params)
+    before = _attribute_fingerprint(env)
+    _check_purity(env, params, before)
     run = jax.jit(jax.vmap(lambda k: _episode(env, params, k)))
     keys = jax.random.split(jax.random.key(20240601), samples)
     out = jax.tree.map(np.asarray, run(keys))
-    _check_purity(env, params)  # Running may not change the env object either.
+    _check_attributes(env, before, "step")  # Compiling and running may not change the env object either.
     _check_layout(env, params, out, space, sizes, samples, horizon)
     _check_expert(env, out, space, samples, horizon)
     _check_theta(env, out, samples)
