@@ -127,7 +127,8 @@ def _check_layout(env: Environment, params: Any, out: dict[str, Any], space: Act
                                  ("step", getattr(out["obs"], view), (samples, horizon))):
             want = (*lead, int(getattr(sizes, view)))
             if arr.shape != want or arr.dtype != np.float32:
-                raise _fail(env, f"the {view} view from {where} has shape {arr.shape} and dtype {arr.dtype}; "
+                raise _fail(env, f"the {view} view from {where} has shape {arr.shape[len(lead):]} and dtype "
+                                 f"{arr.dtype}; "
                                  f"obs_sizes says {want[-1]}, and views must be float32 vectors")
     for name, dtype in (("reward", np.float32), ("done", np.bool_)):
         if out[name].shape != (samples, horizon) or out[name].dtype != dtype:
