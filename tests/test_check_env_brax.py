@@ -1,6 +1,6 @@
 """check_env on the Brax envs, at a short horizon (the compile, not the horizon, is what costs: 20-80 s each).
 
-In the slow tier for now: half_cheetah failed one check here and its cause is not yet known (see the issue's notes).
+In the slow tier for now: half_cheetah failed one of the checks on a loaded 2-core CPU, cause not yet known.
 """
 
 from __future__ import annotations
