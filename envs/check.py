@@ -193,16 +193,28 @@ def _check_theta(env: Environment, out: dict[str, Any], samples: int, steps: int
                              "must never see θ (put it in the expert's and the oracle's views only)")
 
 
+def _first_steps(out: dict[str, Any]) -> list[np.ndarray]:
+    """θ, the reset observation and the first step's outputs: what a batch position could leak into."""
+    first = {"theta": out["theta"], "reset": out["first_obs"],
+             "step": jax.tree.map(lambda x: np.asarray(x)[:, :1], {k: out[k] for k in ("obs", "reward", "done")})}
+    return [np.asarray(x) for x in jax.tree.leaves(first)]
+
+
 def _check_deterministic(env: Environment, run: Any, keys: jax.Array, out: dict[str, Any]) -> None:
-    """Same keys, same outputs; permuted keys, permuted outputs (each episode depends on its own key only)."""
-    again = run(keys)
+    """Same keys, identical outputs; permuted keys, the first step permuted alike (each episode depends on its own
+    key only). The second is compared to float32 tolerance over one step: XLA need not give a batch row bit-identical
+    results at another position (seen with MJX), and chaotic dynamics grow such differences over an episode."""
+    again = jax.tree.map(np.asarray, run(keys))
+    for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(again), strict=True):
+        if not np.array_equal(a, b, equal_nan=True):
+            raise _fail(env, "episodes are not deterministic under jit and vmap: the same keys gave different "
+                             "results (hidden state or randomness not drawn from the key?)")
     order = np.arange(len(keys))[::-1].copy()
-    permuted = run(keys[order])
-    for what, other, idx in (("the same keys", again, slice(None)), ("permuted keys", permuted, order)):
-        for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(other), strict=True):
-            if not np.array_equal(np.asarray(a)[idx], np.asarray(b), equal_nan=True):
-                raise _fail(env, f"episodes are not deterministic under jit and vmap: {what} gave different "
-                                 "results (hidden state or randomness not drawn from the key?)")
+    permuted = jax.tree.map(np.asarray, run(keys[order]))
+    for a, b in zip(_first_steps(out), _first_steps(permuted), strict=True):
+        if not np.allclose(a[order].astype(np.float64), b.astype(np.float64), rtol=1e-4, atol=1e-5, equal_nan=True):
+            raise _fail(env, "episodes depend on other episodes of the batch: permuted keys did not permute the "
+                             "results (state shared across the vmapped batch?)")
 
 
 def check_env(env: Environment, params: Any | None = None, samples: int = 64) -> None:

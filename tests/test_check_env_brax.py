@@ -1,6 +1,7 @@
 """check_env on the Brax envs, at a short horizon (the compile, not the horizon, is what costs: 20-80 s each).
 
-In the slow tier for now: half_cheetah failed one of the checks on a loaded 2-core CPU, cause not yet known.
+In the slow tier for now: with exact comparison of permuted batches both failed (MJX rows differ at float level with
+their batch position); the check now compares the first step to float32 tolerance, not yet re-run on these envs.
 """
 
 from __future__ import annotations
