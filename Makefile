@@ -23,7 +23,7 @@ test-all: setup
 	$(PY) -m pytest -q -m "slow or not slow"
 
 lint: setup
-	.venv/bin/ruff check src envs tests experiments
+	.venv/bin/ruff check src envs tests experiments examples
 
 bench: setup
 	$(PY) experiments/bench.py $(SECTIONS)

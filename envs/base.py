@@ -63,6 +63,8 @@ class Environment:
     normalize_views: ClassVar[bool] = False
     #: Names of the per-step extras ``step`` reports (summed per episode in evaluation).
     extras_names: ClassVar[tuple[str, ...]] = ()
+    #: Config presets for an env loaded as ``module:Class``: preset name -> dotted overrides (``"train.iterations"``).
+    presets: ClassVar[dict[str, dict[str, Any]]] = {}
 
     def default_params(self) -> Any:
         """The environment's default parameters."""
@@ -105,6 +107,10 @@ class Environment:
         """The action a θ-aware agent prefers in ``state``, or -1 where no single one exists."""
         del state, params  # Unused.
         return jnp.asarray(-1, jnp.int32)
+
+    def theta(self, state: Any) -> jax.Array:
+        """The confounder θ of ``state`` (``check_env`` and the renderer read it); by default ``state.theta``."""
+        return state.theta
 
 
 class NormalizedViews(Environment):
@@ -161,3 +167,6 @@ class NormalizedViews(Environment):
 
     def best_action(self, state: Any, params: Any) -> jax.Array:
         return self.env.best_action(state, params)
+
+    def theta(self, state: Any) -> jax.Array:
+        return self.env.theta(state)

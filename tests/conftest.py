@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pathlib
+
 import numpy as np
 import pytest
 
@@ -21,6 +23,9 @@ def pytest_configure(config):
     elif not getattr(config.option, "numprocesses", None):
         pin_to_core(cores[0])
 
+
+#: The worked example of an env from the user's own code, named by file path so any working directory will do.
+CARTPOLE = f"{pathlib.Path(__file__).parents[1] / 'examples' / 'cartpole.py'}:ConfoundedCartPole"
 
 TINY = {
     "model.width": "16",

@@ -1,6 +1,6 @@
 """Slow tier: the paper's bandit result at the CPU preset, on seeds the preset was not tuned on (100-103).
 
-Tolerances come from the 10-seed runs of seeds 0-9 reported in the README (one iteration's expert data in the
+Tolerances come from the 10-seed runs of seeds 0-9 reported in docs/results.md (one iteration's expert data in the
 buffer): dil's final best-arm count had mean 54.1 and per-seed standard deviation 1.2, so the mean of 4 seeds lies
 above 52.5 with margin (2.7 standard errors); its online P(best arm) curve stayed within 0.020 of the exact
 interventional one. Naive BC ended at 34.9 (per-seed standard deviation 2.3), within 0.007 of the exact conditional

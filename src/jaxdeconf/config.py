@@ -145,7 +145,7 @@ def _locomotion_cpu(horizon: int, prediction_steps: int, anneal: int) -> dict[st
         "train.batch_size": 8,
         "train.buffer_episodes": 128,
         # The paper's 100 + 100 gradient steps per iteration: with 16 + 16, dil's latent policy never learnt to read
-        # the target from z (it held whatever speed it reached; README) and stayed below bc.
+        # the target from z (it held whatever speed it reached) and stayed below bc.
         "train.policy_steps": 100,
         "train.encoder_steps": 100,
         "train.policy_lr": 1e-3,
@@ -158,7 +158,7 @@ def _locomotion_cpu(horizon: int, prediction_steps: int, anneal: int) -> dict[st
 
 
 def _locomotion_paper(latent: int, prediction_steps: int, buffer_episodes: int, anneal: int) -> dict[str, Any]:
-    """The reference configuration for the Brax envs."""
+    """The paper's configuration for the Brax envs (meant for a GPU)."""
     return {
         "model.width": 128,
         "model.action_embed": 32,
@@ -251,7 +251,7 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
             # The reference code anneals over 125 of 300 iterations; the same share of this preset's 60.
             "dagger.anneal_iterations": 25,
         },
-        # The reference configuration (for a GPU): GRU 500, latent 64, K = 50, replay of 2e6 transitions.
+        # The paper's configuration (for a GPU): GRU 500, latent 64, K = 50, replay of 2e6 transitions.
         "paper": {
             "model.width": 128,
             "model.action_embed": 32,
@@ -275,13 +275,13 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
     "half_cheetah": {
         # Reduced for a 2-core CPU: 200-step episodes (the paper's are 1000), small nets, 40 iterations of 8 episodes.
         "cpu": _locomotion_cpu(horizon=200, prediction_steps=10, anneal=8),  # 63 of 300 iterations, scaled to 40.
-        # The reference configuration (for a GPU): GRU 500, latent 64, K = 10, 2000 episodes (2e6 transitions).
+        # The paper's configuration (for a GPU): GRU 500, latent 64, K = 10, 2000 episodes (2e6 transitions).
         "paper": _locomotion_paper(latent=64, prediction_steps=10, buffer_episodes=2000, anneal=63),
     },
     "ant_goal": {
         # Reduced for a 2-core CPU: small nets, K = 10 (the paper's is 50), 40 iterations of 8 episodes.
         "cpu": _locomotion_cpu(horizon=200, prediction_steps=10, anneal=5),  # Inside the warm-up, as in the reference.
-        # The reference configuration (for a GPU): latent 8, K = 50; replay capped at 2000 episodes (4e5 transitions,
+        # The paper's configuration (for a GPU): latent 8, K = 50; replay capped at 2000 episodes (4e5 transitions,
         # against the reference code's 2e6) so that a seed's buffers fit next to others on one GPU.
         "paper": _locomotion_paper(latent=8, prediction_steps=50, buffer_episodes=2000, anneal=20),
     },
@@ -410,18 +410,27 @@ def _validate_baselines(config: Config) -> None:
                           "iteration (train.episodes_per_iter x gail.rollout_factor)")
 
 
+def env_presets(env: str) -> dict[str, dict[str, Any]]:
+    """A built-in env's presets; for a user's ``module:Class`` env, the class's ``presets`` over LunarLander's."""
+    if env in PRESETS:
+        return PRESETS[env]
+    from jaxdeconf.envs import resolve
+
+    try:
+        constructor = resolve(env)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    return {**PRESETS["lunar_lander"], **getattr(constructor, "presets", {})}
+
+
 def build(env: str, preset: str, algos: tuple[str, ...], seeds: int, overrides: dict[str, Any]) -> Config:
     """Resolve a preset plus overrides into a validated Config."""
     env = ENV_ALIASES.get(env, env)
-    if env not in PRESETS:
-        from jaxdeconf.envs import REGISTRY
-
-        allowed = sorted(REGISTRY)
-        raise ConfigError(f"unknown env {env!r}; allowed: {', '.join(allowed)}")
-    if preset not in PRESETS[env]:
-        raise ConfigError(f"unknown preset {preset!r} for env {env!r}; allowed: {', '.join(PRESETS[env])}")
+    presets = env_presets(env)
+    if preset not in presets:
+        raise ConfigError(f"unknown preset {preset!r} for env {env!r}; allowed: {', '.join(presets)}")
     config = Config(env=env, algos=algos, seeds=seeds)
-    config = apply_overrides(config, PRESETS[env][preset])
+    config = apply_overrides(config, presets[preset])
     config = apply_overrides(config, overrides)
     validate(config)
     return config

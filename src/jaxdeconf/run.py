@@ -221,7 +221,7 @@ def _setup(args: argparse.Namespace) -> tuple[cfg.Config, pathlib.Path]:
 
     env, params = make(config.env, **config.env_params)
     check_fits(config, env, params, args.jobs or min(len(config.algos), len(available_cores())))
-    return config, pathlib.Path(args.out or f"results/{config.env}-{args.preset}")
+    return config, pathlib.Path(args.out or f"results/{config.env.rpartition(':')[2]}-{args.preset}")
 
 
 class _Stopped(Exception):  # noqa: N818  (a signal, not an error)
