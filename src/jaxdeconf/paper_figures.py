@@ -1,8 +1,9 @@
 """The paper's theory on the bandit, as figures and tables: Theorem 1 (eq. 5), Appendix A and Figure 1.
 
 Each part is one function that computes its numbers, writes its figure (PNG) and table (Markdown) into a folder and
-returns the numbers, so a report can call it: ``theorem1``, ``appendix_a``, ``appendix_a_learned`` and ``figure1``.
-``python -m jaxdeconf.paper_figures PART --out FOLDER`` runs one from the command line.
+returns the numbers, so a report can call it: ``theorem1``, ``appendix_a``, ``appendix_a_learned`` (with
+``bandit_runs``) and ``figure1``. ``python -m jaxdeconf.paper_figures PART --out FOLDER`` runs one from the command
+line (PART: theorem1, appendix_a, learned, figure1).
 """
 
 from __future__ import annotations
@@ -55,20 +56,21 @@ def _write_table(path: pathlib.Path, header: Sequence[str], rows: Sequence[Seque
 
 def theorem1(
     out: pathlib.Path,
-    demos: Sequence[int] = (10, 30, 100, 300, 1000),
-    lengths: Sequence[int] = (10, 30, 100, 300, 1000),
-    short_lengths: Sequence[int] = (2, 5, 10, 20, 50, 100),
-    short_demos: Sequence[int] = (1000, 5000),
-    alphas: Sequence[float] = (0.0, 1.0),
+    demos: Sequence[int] = (10, 100, 1000),
+    lengths: Sequence[int] = (10, 100, 1000),
+    short_lengths: Sequence[int] = (3, 10, 30, 100),
+    short_settings: Sequence[tuple[int, float]] = ((1000, 0.0), (1000, 1.0), (5000, 1.0)),
     episodes: int = 4000,
+    short_episodes: int = 2000,
     ref_episodes: int = 40000,
     seed: int = 0,
 ) -> dict[str, Any]:
     """Eq. 5 on the paper's bandit against the exact interventional policy, over N demonstrations of H steps.
 
     Writes ``theorem1.png`` (online best-arm count and max per-step gap against N, one line per H; and the short-
-    demonstration regime against H) and ``theorem1.md``; returns the rows and the references. Each estimate acts for
-    ``episodes`` online episodes; the gap's Monte-Carlo floor is the interventional policy against itself.
+    demonstration regime against H, for each (N, α) of ``short_settings``) and ``theorem1.md``; returns the rows and
+    the references. Each estimate acts for ``episodes`` online episodes (``short_episodes`` in the short regime); the
+    gap's Monte-Carlo floor is the interventional policy against itself at ``episodes``.
     """
     out.mkdir(parents=True, exist_ok=True)
     params = BanditParams()
@@ -80,10 +82,10 @@ def theorem1(
     floor_gap = float(np.max(np.abs(np.asarray(floor["interventional_online"]) - refs["interventional_online"])))
     curves = jax.jit(theory.estimator_curves, static_argnums=(1, 2, 3, 4))
 
-    def one(n: int, h: int, alpha: float) -> dict[str, Any]:
+    def one(n: int, h: int, alpha: float, num_episodes: int) -> dict[str, Any]:
         t0 = time.perf_counter()
         key_nh = jax.random.fold_in(jax.random.fold_in(key_est, n), h)
-        est = curves(key_nh, params, n, h, episodes, alpha)
+        est = curves(key_nh, params, n, h, num_episodes, alpha)
         gap = np.abs(np.asarray(est["online"]) - refs["interventional_online"])
         row = {"demos": n, "length": h, "alpha": alpha, "count": float(est["count"]),
                "count_se": float(est["count_se"]), "max_gap": float(np.max(gap)), "gap_step": int(np.argmax(gap)),
@@ -92,14 +94,15 @@ def theorem1(
               f"max gap {row['max_gap']:.3f} ({row['seconds']:.0f} s)", flush=True)
         return row
 
-    grid = [one(n, h, 1.0) for h in lengths for n in demos]
-    short = [one(n, h, a) for a in alphas for n in short_demos for h in short_lengths]
+    grid = [one(n, h, 1.0, episodes) for h in lengths for n in demos]
+    done = {(r["demos"], r["length"], r["alpha"]): r for r in grid}  # Reused: each (N, H) compiles anew.
+    short = [done.get((n, h, a)) or one(n, h, a, short_episodes) for n, a in short_settings for h in short_lengths]
     result = {"grid": grid, "short": short, "floor_gap": floor_gap, "episodes": episodes,
               "interventional_count": float(refs["interventional_count"]),
               "interventional_count_se": float(refs["interventional_count_se"]),
               "conditional_count": float(refs["conditional_count"]), "expert_count": float(refs["expert_count"])}
     _theorem1_table(out / "theorem1.md", result)
-    _theorem1_plot(out / "theorem1.png", result, demos, lengths, short_demos, alphas)
+    _theorem1_plot(out / "theorem1.png", result, demos, lengths, short_settings)
     (out / "theorem1.json").write_text(json.dumps(result) + "\n")
     return result
 
@@ -115,7 +118,7 @@ def _theorem1_table(path: pathlib.Path, result: dict[str, Any]) -> None:
 
 def _theorem1_plot(
     path: pathlib.Path, result: dict[str, Any], demos: Sequence[int], lengths: Sequence[int],
-    short_demos: Sequence[int], alphas: Sequence[float],
+    short_settings: Sequence[tuple[int, float]],
 ) -> None:
     """Three panels: count vs N, gap vs N (one line per H), count vs short H (one line per N and α)."""
     plt = _pyplot()
@@ -137,11 +140,10 @@ def _theorem1_plot(
     axes[1].set_yscale("log")
     axes[1].set_ylabel("max per-step |P(best) - interventional|")
     axes[1].legend(fontsize=7)
-    for n in short_demos:
-        for a in alphas:
-            rows = [r for r in result["short"] if r["demos"] == n and r["alpha"] == a]
-            axes[2].errorbar([r["length"] for r in rows], [r["count"] for r in rows], [r["count_se"] for r in rows],
-                             marker="o", capsize=2, label=f"N = {n}, α = {a:g}")
+    for n, a in short_settings:
+        rows = [r for r in result["short"] if r["demos"] == n and r["alpha"] == a]
+        axes[2].errorbar([r["length"] for r in rows], [r["count"] for r in rows], [r["count_se"] for r in rows],
+                         marker="o", capsize=2, label=f"N = {n}, α = {a:g}")
     axes[2].axhline(result["interventional_count"], color="k", ls="--", label="exact interventional")
     axes[2].axhline(20.0, color="gray", ls=":", label="uniform (no inference)")
     axes[2].set_xscale("log")
@@ -305,7 +307,7 @@ def rollout_actions(
 
 
 def figure1(
-    out: pathlib.Path, results: pathlib.Path | None = None, episodes: int = 5, seed: int = 0
+    out: pathlib.Path, results: pathlib.Path | None = None, episodes: int = 8, seed: int = 0
 ) -> dict[str, Any]:
     """Figure 1's rollout rasters: actions per step of the expert, interventional and conditional policies, and of
     the trained ``bc`` and ``dil`` of a results folder (when given), the correct arm in green.
@@ -349,7 +351,7 @@ def _figure1_plot(path: pathlib.Path, actions: dict[str, np.ndarray], thetas: di
         code = np.where(a == theta, 0, 1 + (a - theta - 1) % 4)
         ax.imshow(code, aspect="auto", cmap=cmap, vmin=0, vmax=4, interpolation="nearest")
         ax.set_yticks(range(a.shape[0]), [f"θ={t}" for t in thetas[name]], fontsize=6)
-        ax.set_ylabel(name, rotation=0, ha="right", va="center", fontsize=8)
+        ax.set_ylabel(f"{name}\n{np.mean(a == theta):.0%} correct", rotation=0, ha="right", va="center", fontsize=8)
     np.atleast_1d(axes)[-1].set_xlabel("step")
     fig.suptitle("Rollouts on the bandit (p = 0.6, q = 0.75): correct arm green")
     fig.tight_layout()
@@ -357,20 +359,40 @@ def _figure1_plot(path: pathlib.Path, actions: dict[str, np.ndarray], thetas: di
     plt.close(fig)
 
 
+def bandit_runs(parent: pathlib.Path) -> dict[tuple[float, float], pathlib.Path]:
+    """The bandit results folders directly under ``parent`` that finished ``bc`` and ``dil``, keyed by (p, q)."""
+    defaults = BanditParams()
+    runs = {}
+    for config_path in sorted(parent.glob("*/config.json")):
+        config = json.loads(config_path.read_text())
+        folder = config_path.parent
+        if config["env"] == "bandit" and all((folder / algo / "DONE").exists() for algo in ("bc", "dil")):
+            env = config["env_params"]
+            runs[(float(env.get("p", defaults.p)), float(env.get("q", defaults.q)))] = folder
+    return runs
+
+
 def main(argv: list[str] | None = None) -> int:
-    """``python -m jaxdeconf.paper_figures {theorem1,appendix_a,figure1} --out FOLDER [--results FOLDER]``."""
+    """``python -m jaxdeconf.paper_figures PART --out FOLDER [--results FOLDER]``."""
     parser = argparse.ArgumentParser(prog="python -m jaxdeconf.paper_figures", description=__doc__)
-    parser.add_argument("part", choices=("theorem1", "appendix_a", "figure1"))
+    parser.add_argument("part", choices=("theorem1", "appendix_a", "learned", "figure1"))
     parser.add_argument("--out", default="report", help="folder for figures and tables")
-    parser.add_argument("--results", default=None, help="figure1: a bandit results folder with trained bc and dil")
+    parser.add_argument("--results", default=None,
+                        help="figure1: a bandit results folder with trained bc and dil; learned: a folder of such "
+                             "folders, one per (env.p, env.q)")
     args = parser.parse_args(argv)
     out = pathlib.Path(args.out)
+    results = pathlib.Path(args.results) if args.results else None
     if args.part == "theorem1":
         theorem1(out)
     elif args.part == "appendix_a":
         appendix_a(out)
+    elif args.part == "learned":
+        if results is None:
+            parser.error("learned needs --results")
+        appendix_a_learned(out, bandit_runs(results))
     else:
-        figure1(out, pathlib.Path(args.results) if args.results else None)
+        figure1(out, results)
     return 0
 
 
