@@ -4,6 +4,7 @@ p = 1 and q = 1; Appendix A's grid at points whose values follow by hand."""
 from __future__ import annotations
 
 import itertools
+import json
 
 import jax
 import jax.numpy as jnp
@@ -14,7 +15,7 @@ from jaxdeconf.envs.base import ActionSpace, Observation
 
 from jaxdeconf import theory
 from jaxdeconf.data import Trajectory, replay
-from jaxdeconf.paper_figures import outcome_rate, success_grid
+from jaxdeconf.paper_figures import appendix_a_learned, bandit_runs, outcome_rate, success_grid
 from jaxdeconf.references import ReferenceActor, belief_update, safe_log
 
 pytestmark = pytest.mark.timeout(120)
@@ -136,3 +137,24 @@ def test_appendix_a_grid_hand_values():
     # The paper's r_t = s_{t+1}: the expert at p = 1 succeeds with probability q.
     assert outcome_rate(np.float32(1.0), np.float32(0.75)) == pytest.approx(0.75)
     assert outcome_rate(np.float32(0.2), np.float32(0.75)) == pytest.approx(0.2 * 0.75 + 0.8 * 0.25)
+
+
+def test_learned_table_reads_results_folders(tmp_path):
+    """``bandit_runs`` finds finished runs by their config's (p, q); the table takes each seed's last evaluation."""
+    folder = tmp_path / "grid"
+    for algo, returns in (("bc", (30.0, 34.0)), ("dil", (50.0, 54.0))):
+        (folder / algo).mkdir(parents=True)
+        (folder / algo / "DONE").write_text("{}\n")
+        rows = [{"algo": algo, "seed": s, "iteration": it, "eval_return": r - (10.0 if it == 1 else 0.0)}
+                for s, r in enumerate(returns) for it in (1, 2)]
+        (folder / algo / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    (folder / "config.json").write_text(json.dumps({"env": "bandit", "env_params": {"p": 1.0}}))
+    refs = {"expert_count": 100.0, "interventional_count": 89.6, "conditional_count": 19.7}
+    (folder / "references.json").write_text(json.dumps(refs))
+    runs = bandit_runs(tmp_path)
+    assert list(runs) == [(1.0, 0.75)]  # q from the bandit's defaults.
+    (row,) = appendix_a_learned(tmp_path / "out", runs)
+    assert row["bc"]["mean"] == pytest.approx(32.0) and row["dil"]["mean"] == pytest.approx(52.0)
+    assert row["dil"]["se"] == pytest.approx(2.0)  # sd of (50, 54) with ddof 1 is 2 sqrt(2); over sqrt(2) seeds.
+    assert "| 1 | 0.75 | 100.0 | 89.6 | 52.0 ± 2.0 | 19.7 | 32.0 ± 2.0 | 2 | 2 |" in (
+        tmp_path / "out" / "appendix_a_learned.md").read_text()

@@ -57,9 +57,10 @@ def _write_table(path: pathlib.Path, header: Sequence[str], rows: Sequence[Seque
 def theorem1(
     out: pathlib.Path,
     demos: Sequence[int] = (10, 100, 1000),
-    lengths: Sequence[int] = (10, 100, 1000),
-    short_lengths: Sequence[int] = (3, 10, 30, 100),
-    short_settings: Sequence[tuple[int, float]] = ((1000, 0.0), (1000, 1.0), (5000, 1.0)),
+    lengths: Sequence[int] = (10, 30, 100, 300, 1000),
+    alpha: float = theory.ALPHA,
+    short_lengths: Sequence[int] = (3, 10, 30, 100, 1000),
+    short_settings: Sequence[tuple[int, float]] = ((1000, 0.0), (1000, 0.1), (1000, 1.0), (5000, 0.1)),
     episodes: int = 4000,
     short_episodes: int = 2000,
     ref_episodes: int = 40000,
@@ -67,7 +68,8 @@ def theorem1(
 ) -> dict[str, Any]:
     """Eq. 5 on the paper's bandit against the exact interventional policy, over N demonstrations of H steps.
 
-    Writes ``theorem1.png`` (online best-arm count and max per-step gap against N, one line per H; and the short-
+    Writes ``theorem1.png`` (online best-arm count and max per-step gap against N, one line per H, pseudo-count
+    ``alpha``; and the short-
     demonstration regime against H, for each (N, α) of ``short_settings``) and ``theorem1.md``; returns the rows and
     the references. Each estimate acts for ``episodes`` online episodes (``short_episodes`` in the short regime); the
     gap's Monte-Carlo floor is the interventional policy against itself at ``episodes``.
@@ -94,10 +96,10 @@ def theorem1(
               f"max gap {row['max_gap']:.3f} ({row['seconds']:.0f} s)", flush=True)
         return row
 
-    grid = [one(n, h, 1.0, episodes) for h in lengths for n in demos]
+    grid = [one(n, h, alpha, episodes) for h in lengths for n in demos]
     done = {(r["demos"], r["length"], r["alpha"]): r for r in grid}  # Reused: each (N, H) compiles anew.
     short = [done.get((n, h, a)) or one(n, h, a, short_episodes) for n, a in short_settings for h in short_lengths]
-    result = {"grid": grid, "short": short, "floor_gap": floor_gap, "episodes": episodes,
+    result = {"grid": grid, "short": short, "floor_gap": floor_gap, "episodes": episodes, "alpha": alpha,
               "interventional_count": float(refs["interventional_count"]),
               "interventional_count_se": float(refs["interventional_count_se"]),
               "conditional_count": float(refs["conditional_count"]), "expert_count": float(refs["expert_count"])}
@@ -150,7 +152,7 @@ def _theorem1_plot(
     axes[2].set_xlabel("demonstration length H (short: recurrence fails)")
     axes[2].set_ylabel("online best-arm count / 100 steps")
     axes[2].legend(fontsize=7)
-    fig.suptitle("Theorem 1 (eq. 5) on the bandit (p = 0.6, q = 0.75)")
+    fig.suptitle(f"Theorem 1 (eq. 5) on the bandit (p = 0.6, q = 0.75); left and middle: α = {result['alpha']:g}")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
@@ -220,23 +222,29 @@ def _appendix_a_table(
 
 
 def _appendix_a_plot(path: pathlib.Path, grid: dict[str, np.ndarray], ps: Sequence[float], qs: Sequence[float]) -> None:
-    """Three heatmaps as the paper's: expert stochasticity on y (deterministic at the bottom), environment's on x."""
+    """Heatmaps as the paper's (expert deterministic at the bottom, environment deterministic on the left): the
+    best-arm rate (the env's reward) on top, P(s' = 1) (the paper's r_t = s_{t+1}) below."""
     plt = _pyplot()
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8), sharey=True)
-    for ax, kind in zip(axes, POLICIES, strict=True):
-        image = ax.imshow(grid[kind], origin="lower", vmin=0.0, vmax=1.0, cmap="viridis")
-        for i in range(len(ps)):
-            for j in range(len(qs)):
-                value = grid[kind][i, j]
-                ax.text(j, i, f"{value:.2f}", ha="center", va="center", fontsize=8,
-                        color="white" if value < 0.6 else "black")
-        ax.set_xticks(range(len(qs)), [f"{q:g}" for q in qs])
-        ax.set_yticks(range(len(ps)), [f"{p:g}" for p in ps])
-        ax.set_xlabel("P(s'=1 | a=θ)  (environment: deterministic → stochastic)")
-        ax.set_title(kind)
-    axes[0].set_ylabel("π(a=θ)  (expert: deterministic at bottom)")
-    fig.colorbar(image, ax=axes, shrink=0.8, label="best-arm rate per step")
-    fig.savefig(path, dpi=90, bbox_inches="tight")
+    fig, axes = plt.subplots(2, 3, figsize=(11, 7), sharex=True, sharey=True)
+    q_grid = np.asarray(qs, np.float32)[None, :]
+    for row, (label, transform) in enumerate((("best-arm rate per step", lambda x: x),
+                                              ("P(s'=1) per step", lambda x: outcome_rate(x, q_grid)))):
+        for ax, kind in zip(axes[row], POLICIES, strict=True):
+            values = transform(grid[kind])
+            image = ax.imshow(values, origin="lower", vmin=0.0, vmax=1.0, cmap="viridis")
+            for i in range(len(ps)):
+                for j in range(len(qs)):
+                    ax.text(j, i, f"{values[i, j]:.2f}", ha="center", va="center", fontsize=8,
+                            color="white" if values[i, j] < 0.6 else "black")
+            ax.set_xticks(range(len(qs)), [f"{q:g}" for q in qs])
+            ax.set_yticks(range(len(ps)), [f"{p:g}" for p in ps])
+            ax.set_title(f"{kind}: {label}", fontsize=9)
+        axes[row, 0].set_ylabel("expert π(a=θ)")
+        fig.colorbar(image, ax=axes[row], shrink=0.8)
+    for ax in axes[1]:
+        ax.set_xlabel("environment P(s'=1 | a=θ)")
+    fig.suptitle("Appendix A: expert deterministic at the bottom, environment deterministic on the left")
+    fig.savefig(path, dpi=80, bbox_inches="tight")
     plt.close(fig)
 
 
