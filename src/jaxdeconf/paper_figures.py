@@ -308,20 +308,22 @@ def learned_actor(folder: pathlib.Path, algo: str, seed_index: int = 0) -> tuple
 
 def rollout_actions(
     key: jax.Array, env: Any, env_params: Any, actor: Any, actor_params: Any, episodes: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Actions [episodes, T] and the best arm θ [episodes] of ``episodes`` online episodes."""
-    traj, _ = jax.jit(rollout, static_argnums=(0, 2, 5))(env, env_params, actor, actor_params, key, episodes)
-    return np.asarray(traj.action).T, np.asarray(traj.best_action[0])
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Actions [episodes, T], the best arm θ [episodes] and the expected best-arm count per episode (the policy's
+    P(best) summed over steps, averaged over episodes) of ``episodes`` online episodes."""
+    traj, p_best = jax.jit(rollout, static_argnums=(0, 2, 5))(env, env_params, actor, actor_params, key, episodes)
+    return np.asarray(traj.action).T, np.asarray(traj.best_action[0]), float(np.mean(np.sum(p_best, axis=0)))
 
 
 def figure1(
-    out: pathlib.Path, results: pathlib.Path | None = None, episodes: int = 8, seed: int = 0
+    out: pathlib.Path, results: pathlib.Path | None = None, episodes: int = 8, count_episodes: int = 2000, seed: int = 0
 ) -> dict[str, Any]:
     """Figure 1's rollout rasters: actions per step of the expert, interventional and conditional policies, and of
     the trained ``bc`` and ``dil`` of a results folder (when given), the correct arm in green.
 
-    The same key drives every policy, so the rows share θ. Writes ``figure1.png``; returns the actions, the θs and
-    each policy's fraction of correct pulls.
+    The same key drives every policy, so the rows share θ. A few rows can flatter or wrong a policy, so each label
+    also gives its best-arm count per 100 steps over ``count_episodes`` episodes. Writes ``figure1.png``; returns the
+    actions, the θs, each raster's fraction of correct pulls and each policy's count.
     """
     out.mkdir(parents=True, exist_ok=True)
     env = Bandit()
@@ -335,18 +337,21 @@ def figure1(
         for algo in ("bc", "dil"):
             if (results / algo / "checkpoints").exists():
                 policies[f"{algo} (trained)"] = learned_actor(results, algo)
-    key = jax.random.key(seed)
-    actions, thetas = {}, {}
+    key, key_count = jax.random.split(jax.random.key(seed))
+    actions, thetas, counts = {}, {}, {}
     for name, (e, p, actor, actor_params) in policies.items():
-        actions[name], thetas[name] = rollout_actions(key, e, p, actor, actor_params, episodes)
-    _figure1_plot(out / "figure1.png", actions, thetas)
-    result = {name: {"actions": a.tolist(), "theta": thetas[name].tolist(),
+        actions[name], thetas[name], _ = rollout_actions(key, e, p, actor, actor_params, episodes)
+        counts[name] = rollout_actions(key_count, e, p, actor, actor_params, count_episodes)[2]
+    _figure1_plot(out / "figure1.png", actions, thetas, counts)
+    result = {name: {"actions": a.tolist(), "theta": thetas[name].tolist(), "count": counts[name],
                      "correct": float(np.mean(a == thetas[name][:, None]))} for name, a in actions.items()}
     (out / "figure1.json").write_text(json.dumps(result) + "\n")
     return result
 
 
-def _figure1_plot(path: pathlib.Path, actions: dict[str, np.ndarray], thetas: dict[str, np.ndarray]) -> None:
+def _figure1_plot(
+    path: pathlib.Path, actions: dict[str, np.ndarray], thetas: dict[str, np.ndarray], counts: dict[str, float]
+) -> None:
     """One raster per policy: rows are episodes, columns steps; green is the correct arm, other arms other colours."""
     plt = _pyplot()
     from matplotlib.colors import ListedColormap
@@ -359,7 +364,8 @@ def _figure1_plot(path: pathlib.Path, actions: dict[str, np.ndarray], thetas: di
         code = np.where(a == theta, 0, 1 + (a - theta - 1) % 4)
         ax.imshow(code, aspect="auto", cmap=cmap, vmin=0, vmax=4, interpolation="nearest")
         ax.set_yticks(range(a.shape[0]), [f"θ={t}" for t in thetas[name]], fontsize=6)
-        ax.set_ylabel(f"{name}\n{np.mean(a == theta):.0%} correct", rotation=0, ha="right", va="center", fontsize=8)
+        label = f"{name}\nrows: {np.mean(a == theta):.0%} correct\ncount {counts[name]:.1f} / 100"
+        ax.set_ylabel(label, rotation=0, ha="right", va="center", fontsize=8)
     np.atleast_1d(axes)[-1].set_xlabel("step")
     fig.suptitle("Rollouts on the bandit (p = 0.6, q = 0.75): correct arm green")
     fig.tight_layout()
