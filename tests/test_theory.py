@@ -160,3 +160,20 @@ def test_learned_table_reads_results_folders(tmp_path):
     assert row["dil"]["se"] == pytest.approx(2.0)  # sd of (50, 54) with ddof 1 is 2 sqrt(2); over sqrt(2) seeds.
     assert "| 1 | 0.75 | 100.0 | 89.6 | 52.0 ± 2.0 | 19.7 | 32.0 ± 2.0 | 2 | 2 |" in (
         tmp_path / "out" / "appendix_a_learned.md").read_text()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_trained_imitators_load_for_figure1(tmp_path, tiny_config):
+    """Figure 1's loader restores bc and dil from a results folder's checkpoints, and they act on the bandit."""
+    from jaxdeconf import config as cfg
+    from jaxdeconf.paper_figures import learned_actor, rollout_actions
+    from jaxdeconf.train import train_algorithm
+
+    config = tiny_config(seeds=1)
+    (tmp_path / "config.json").write_text(cfg.dumps(config) + "\n")
+    for algo in ("bc", "dil"):
+        train_algorithm(config, algo, tmp_path / algo, progress=False)
+        actions, theta, count = rollout_actions(jax.random.key(0), *learned_actor(tmp_path, algo), episodes=3)
+        assert actions.shape == (3, 10) and theta.shape == (3,)  # The tiny config's 10-step bandit.
+        assert 0.0 <= count <= 10.0

@@ -69,10 +69,10 @@ def theorem1(
     """Eq. 5 on the paper's bandit against the exact interventional policy, over N demonstrations of H steps.
 
     Writes ``theorem1.png`` (online best-arm count and max per-step gap against N, one line per H, pseudo-count
-    ``alpha``; and the short-
-    demonstration regime against H, for each (N, α) of ``short_settings``) and ``theorem1.md``; returns the rows and
-    the references. Each estimate acts for ``episodes`` online episodes (``short_episodes`` in the short regime); the
-    gap's Monte-Carlo floor is the interventional policy against itself at ``episodes``.
+    ``alpha``; and the short-demonstration regime against H, for each (N, α) of ``short_settings``) and
+    ``theorem1.md``; returns the rows and the references. Each estimate acts for ``episodes`` online episodes
+    (``short_episodes`` in the short regime); the gap's Monte-Carlo floor is the interventional policy against itself
+    at ``episodes``.
     """
     out.mkdir(parents=True, exist_ok=True)
     params = BanditParams()

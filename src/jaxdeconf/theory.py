@@ -106,7 +106,7 @@ def mixture_policy(model: TabularModel, log_belief: jax.Array, s: jax.Array) -> 
 
 
 def bandit_state(obs: Observation) -> jax.Array:
-    """The bandit's discrete state index (the last outcome, 0 or 1) [B] from the imitator's view [B, 1]."""
+    """The bandit's discrete state index (the last outcome, 0 or 1) [...] from the imitator's view [..., 1]."""
     return (obs.imitator[..., 0] > 0.5).astype(jnp.int32)
 
 
@@ -135,8 +135,7 @@ def fit_bandit(key: jax.Array, params: BanditParams, demos: int, length: int, al
     env = Bandit()
     demo_params = params.replace(horizon=length)
     traj, _ = rollout(env, demo_params, ExpertActor(env, demo_params), None, key, demos)
-    states = (traj.obs.imitator[..., 0] > 0.5).astype(jnp.int32)
-    return fit(states, traj.action, 2, params.arms, alpha)
+    return fit(bandit_state(traj.obs), traj.action, 2, params.arms, alpha)
 
 
 def estimator_curves(
