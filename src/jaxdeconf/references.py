@@ -4,6 +4,8 @@ Both keep a log-belief over θ. After pulling arm a and seeing outcome s', the *
 dynamics evidence log P(s' | a, θ) (q for θ = a, 1 - q otherwise); the *conditional* belief also adds the expert's
 action likelihood log π_exp(a | θ), treating the imitator's own actions as evidence (the causal delusion). Each
 policy plays the expert's action distribution averaged over its belief (Thompson sampling of the expert).
+The edges p = 1 (deterministic expert) and q = 1 (deterministic environment) are allowed: a zero probability is a
+log-evidence of -inf (``safe_log``), and ``belief_update`` says what happens to a history of probability zero.
 """
 
 from __future__ import annotations
@@ -26,11 +28,22 @@ def belief_update(kind: str, log_belief: jax.Array, action: jax.Array, outcome: 
     hit = jnp.arange(params.arms) == action[..., None]
     success = outcome[..., None] > 0.5
     p_success = jnp.where(hit, params.q, 1.0 - params.q)
-    evidence = jnp.log(jnp.where(success, p_success, 1.0 - p_success))
+    evidence = safe_log(jnp.where(success, p_success, 1.0 - p_success))
     if kind == "conditional":
-        evidence = evidence + jnp.log(jnp.where(hit, params.p, (1.0 - params.p) / (params.arms - 1)))
+        evidence = evidence + safe_log(jnp.where(hit, params.p, (1.0 - params.p) / (params.arms - 1)))
     new = log_belief + evidence
-    return new - jax.nn.logsumexp(new, axis=-1, keepdims=True)
+    norm = jax.nn.logsumexp(new, axis=-1, keepdims=True)
+    # At p = 1 and q = 1 a miss (outcome 0) has probability 0 under every θ of the conditional model (the expert never
+    # misses): the history is impossible and Bayes is undefined (-inf - -inf). Keep the belief, which is the limit of
+    # (1 - p) / (arms - 1) = 1 - q = ε -> 0, where that step multiplies every θ by the same ε. Histories the real
+    # environment produces never rule out the true θ under the interventional model, so it never takes this branch.
+    return jnp.where(jnp.isfinite(norm), new - norm, log_belief)
+
+
+def safe_log(x: jax.Array) -> jax.Array:
+    """log x with log 0 = -inf and no NaN gradient (the log's input is guarded where x = 0, as at p = 1 or q = 1)."""
+    positive = x > 0
+    return jnp.where(positive, jnp.log(jnp.where(positive, x, 1.0)), -jnp.inf)
 
 
 def policy_probs(log_belief: jax.Array, params: BanditParams) -> jax.Array:
@@ -56,7 +69,7 @@ class ReferenceActor:
         has_prev = jnp.sum(prev_action, axis=-1) > 0
         updated = belief_update(self.kind, carry, jnp.argmax(prev_action, -1), obs.imitator[..., 0], self.params)
         carry = jnp.where(has_prev[:, None], updated, carry)
-        return carry, jnp.log(policy_probs(carry, self.params))
+        return carry, safe_log(policy_probs(carry, self.params))
 
 
 def reference_curves(key: jax.Array, params: BanditParams, episodes: int) -> dict[str, jax.Array]:
