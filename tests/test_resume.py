@@ -102,7 +102,7 @@ def _prepare(folder: pathlib.Path) -> None:
 MOMENTS = [
     # (moment, what is killed). The kill lands in the worker, except for config.json (the parent writes it).
     "before_done",  # Between the last checkpoint and DONE.
-    "curves.npz",  # While curves.npz is written.
+    pytest.param("curves.npz", marks=pytest.mark.slow),  # While curves.npz is written.
     pytest.param("checkpoint_write", marks=pytest.mark.slow),  # While orbax writes a checkpoint.
     pytest.param("config.json", marks=pytest.mark.slow),  # While config.json is written.
     pytest.param("metrics.jsonl", marks=pytest.mark.slow),  # During the resume's rewrite of metrics.jsonl.
@@ -193,7 +193,8 @@ def test_diverging_run_keeps_last_good_checkpoint(tmp_path, tiny_config):
 
 
 @pytest.mark.timeout(900)
-@pytest.mark.parametrize("signum", [signal.SIGTERM, pytest.param(signal.SIGINT, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("signum", [pytest.param(signal.SIGTERM, marks=pytest.mark.slow),
+                                    pytest.param(signal.SIGINT, marks=pytest.mark.slow)])
 def test_signal_stops_workers_with_one_line(tmp_path, signum):
     """SIGTERM to the run (or Ctrl-C, which a terminal sends to every process of it) stops its workers too."""
     folder = tmp_path / "r"
