@@ -20,6 +20,7 @@ import numpy as np
 import optax
 
 from jaxdeconf.envs.base import Environment
+from jaxdeconf.losses import masked_mean
 
 
 class ExpertNetwork(nn.Module):
@@ -64,10 +65,7 @@ def gae(
 
 def _mean(x: jax.Array, mask: jax.Array | None) -> jax.Array:
     """Mean of ``x``, over the entries where ``mask`` holds when one is given."""
-    if mask is None:
-        return x.mean()
-    mask = mask.astype(x.dtype)
-    return jnp.sum(x * mask) / jnp.maximum(jnp.sum(mask), 1.0)
+    return x.mean() if mask is None else masked_mean(x, mask)
 
 
 def normalize_advantages(adv: jax.Array, mask: jax.Array | None = None) -> jax.Array:

@@ -127,14 +127,7 @@ def plot(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> l
 
     written = []
     fig, ax = plt.subplots(figsize=(6, 4))
-    for algo in config.algos:
-        rows = load_metrics(folder, algo)
-        if not rows:
-            continue
-        iters, returns = eval_table(rows, "eval_return")
-        m, se = mean_se(returns)
-        ax.plot(iters, m, label=algo, color=COLORS.get(algo))
-        ax.fill_between(iters, m - se, m + se, alpha=0.25, color=COLORS.get(algo))
+    _return_curves(ax, folder, config, window=None, alpha=0.25)
     if refs is not None:
         for kind, style in (("expert", ":"), ("interventional", "--"), ("conditional", "-.")):
             ax.axhline(refs[f"{kind}_count"], color="k", ls=style, lw=1, label=f"exact {kind}")
@@ -175,6 +168,19 @@ def plot(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> l
     return written
 
 
+def _return_curves(ax: Any, folder: pathlib.Path, config: Config, window: int | None, alpha: float) -> None:
+    """Each algorithm's evaluation return over iterations, mean ± s.e. over seeds, each seed first smoothed over
+    ``window`` evaluations when one is given."""
+    for algo in config.algos:
+        rows = load_metrics(folder, algo)
+        if not rows:
+            continue
+        iters, returns = eval_table(rows, "eval_return")
+        m, se = mean_se(returns if window is None else smooth(returns, window))
+        ax.plot(iters, m, label=algo, color=COLORS.get(algo))
+        ax.fill_between(iters, m - se, m + se, alpha=alpha, color=COLORS.get(algo))
+
+
 def smooth(x: np.ndarray, window: int) -> np.ndarray:
     """Trailing moving average along the last axis over up to ``window`` points (shorter at the start)."""
     csum = np.cumsum(np.nan_to_num(x), axis=-1)
@@ -200,13 +206,7 @@ def plot_comparison(folder: pathlib.Path, config: Config, refs: dict[str, Any] |
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
-    for algo in config.algos:
-        rows = load_metrics(folder, algo)
-        if rows:
-            iters, returns = eval_table(rows, "eval_return")
-            m, se = mean_se(smooth(returns, SMOOTH))
-            ax.plot(iters, m, label=algo, color=COLORS.get(algo))
-            ax.fill_between(iters, m - se, m + se, alpha=0.2, color=COLORS.get(algo))
+    _return_curves(ax, folder, config, window=SMOOTH, alpha=0.2)
     expert = refs["expert_count"] if refs is not None else expert_demo_return(folder, config)
     if expert is not None:
         ax.axhline(float(expert), color="k", ls=":", lw=1, label="expert")
