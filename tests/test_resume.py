@@ -128,37 +128,79 @@ def test_kill_then_rerun_is_identical(uninterrupted, moment):
     assert not [p for p in folder.rglob(".tmp-*")], "temporary files left behind"
 
 
+KILL_SITE = pathlib.Path(__file__).with_name("kill_site")  # Its sitecustomize.py arms the kill points.
+RANDOM_ARGV = ["--algo", "bc,dil", "--seeds", "3", "--quiet",
+               *[a for k, v in TINY.items() for a in ("--set", f"{k}={v}")]]
+
+
+def _random_run(folder: pathlib.Path, cache: pathlib.Path, timeout: float = 1800, **env: str) -> subprocess.Popen:
+    """Start the 3-seed bc + dil bandit CLI run in its own process group, with the kill site on its path."""
+    env = {**_env(cache), "PYTHONPATH": str(KILL_SITE), **env}
+    return subprocess.Popen([sys.executable, "-m", "jaxdeconf.run", *RANDOM_ARGV, "--out", str(folder)], env=env,
+                            start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def _finish(proc: subprocess.Popen, timeout: float = 1800) -> int:
+    try:
+        proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    return proc.returncode
+
+
+def _kill_at_random_time(folder, cache, rng, length) -> str | None:
+    """SIGKILL the whole run (parent and workers at once) at a time uniform over an uninterrupted run's length."""
+    at = float(rng.uniform(0.5, length))
+    proc = _random_run(folder, cache)
+    try:
+        proc.wait(timeout=at)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+    _finish(proc, 60)
+    return f"all processes at {at:.1f} s" if proc.returncode == -signal.SIGKILL else None
+
+
+def _kill_at_random_event(folder, cache, rng, counts) -> str | None:
+    """SIGKILL one process (the parent, or one worker, as the OOM killer would) just before one of its file writes,
+    renames or checkpoint saves, drawn uniformly among the events that process has in an uninterrupted run."""
+    role = str(rng.choice(sorted(counts)))
+    k = int(rng.integers(1, counts[role] + 1))
+    code = _finish(_random_run(folder, cache, JAXDECONF_KILL_AT=f"{role}:{k}"))
+    return f"{role} before its event {k} of {counts[role]}" if code != 0 else None
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(7200)
 def test_random_kills_resume_identically(tmp_path):
-    """SIGKILL a 3-seed bc + dil bandit run (parent and workers at once) at 20 random moments; after each, the same
-    command again finishes with results identical to the uninterrupted run's."""
+    """20 random SIGKILLs of a 3-seed bc + dil bandit run, alternately at a random time (every process at once) and
+    at a random file-system event of one process; after each, the same command again finishes with results
+    identical to the uninterrupted run's. A drawn moment the run got past unharmed is drawn again."""
     rng = np.random.default_rng(19)
-    cache = tmp_path / "cache"
-    argv = ["--algo", "bc,dil", "--seeds", "3", "--quiet", *[a for k, v in TINY.items() for a in ("--set", f"{k}={v}")]]
-    cmd = [sys.executable, "-m", "jaxdeconf.run", *argv, "--out"]
-    t0 = time.monotonic()
-    subprocess.run([*cmd, str(tmp_path / "whole")], env=_env(cache), timeout=1800, check=True, capture_output=True)
+    cache, counted = tmp_path / "cache", tmp_path / "counts"
+    counted.mkdir()
+    assert _finish(_random_run(tmp_path / "whole", cache)) == 0  # Also fills the compilation cache.
     expected = results_of(tmp_path / "whole", ("bc", "dil"))
-    # Kills uniform over a run's length, timed on a second run (the first also compiled into the cache).
-    t1 = time.monotonic()
-    subprocess.run([*cmd, str(tmp_path / "timing")], env=_env(cache), timeout=1800, check=True, capture_output=True)
-    length = time.monotonic() - t1
-    print(f"first run {t1 - t0:.1f} s, cached run {length:.1f} s")
-    for trial in range(int(os.environ.get("KILL_TRIALS", "20"))):  # Fewer, to try the test on a busy machine.
-        folder = tmp_path / f"kill{trial}"
-        at = float(rng.uniform(0.5, length))
-        proc = subprocess.Popen([*cmd, str(folder)], env=_env(cache), start_new_session=True,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        try:
-            proc.wait(timeout=at)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait(timeout=60)
-        state = sorted(str(p.relative_to(folder)) for p in folder.rglob("*") if p.is_file())[-3:]
-        print(f"trial {trial}: kill at {at:.1f} s, exit {proc.returncode}, last files {state}")
-        subprocess.run([*cmd, str(folder)], env=_env(cache), timeout=1800, check=True, capture_output=True)
-        assert results_of(folder, ("bc", "dil")) == expected, trial
+    t0 = time.monotonic()
+    assert _finish(_random_run(tmp_path / "timing", cache, JAXDECONF_KILL_COUNT=str(counted))) == 0
+    length = time.monotonic() - t0
+    counts = {p.name: int(p.read_text()) for p in counted.iterdir()}
+    assert set(counts) == {"parent", "bc", "dil"} and min(counts.values()) > 0, counts
+    print(f"uninterrupted run {length:.1f} s; file-system events per process {counts}")
+    kills = draws = 0
+    while kills < int(os.environ.get("KILL_TRIALS", "20")):  # Fewer, to try the test on a busy machine.
+        draws += 1
+        assert draws < 60, "the drawn moments keep missing the run"
+        folder = tmp_path / f"kill{draws}"
+        how = (_kill_at_random_time(folder, cache, rng, length) if kills % 2 == 0
+               else _kill_at_random_event(folder, cache, rng, counts))
+        if how is None:
+            continue
+        kills += 1
+        print(f"kill {kills}: {how}", flush=True)
+        assert _finish(_random_run(folder, cache)) == 0, f"rerun after kill {kills} ({how}) failed"
+        assert results_of(folder, ("bc", "dil")) == expected, f"kill {kills} ({how})"
+        assert not [p for p in folder.rglob(".tmp-*")], "temporary files left behind"
 
 
 def test_non_finite_loss_stops_with_one_line(tiny_config):
