@@ -2,7 +2,7 @@
 PY := .venv/bin/python
 PIP := .venv/bin/pip
 
-.PHONY: setup run test test-all lint bench clean
+.PHONY: setup run test test-all lint bench reproduce clean
 
 .venv/.installed: pyproject.toml
 	python3 -m venv .venv
@@ -24,6 +24,10 @@ test-all: setup
 
 lint: setup
 	.venv/bin/ruff check src envs tests experiments examples
+
+# Every table and figure of the paper into report/ (resumable; SCALE=paper on a GPU).
+reproduce: setup
+	$(PY) -m jaxdeconf.reproduce --scale $(or $(SCALE),cpu) --out report
 
 bench: setup
 	$(PY) experiments/bench.py $(SECTIONS)
