@@ -34,7 +34,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from flax import struct
-from jaxdeconf.envs.base import ActionSpace, Environment, Observation, StepResult
+from jaxdeconf.envs.base import ActionSpace, Environment, Observation, ObsGroup, StepResult
 
 BACKENDS = ("mjx", "generalized", "positional", "spring")
 
@@ -211,6 +211,11 @@ class HalfCheetah(BraxConfounded):
         s = self.state_size(params)
         return Observation(expert=s + 1 + int(params.expert_sees_indicator), imitator=s + 1, oracle=s + 2)
 
+    def obs_groups(self, params: HalfCheetahParams) -> tuple[ObsGroup, ...]:
+        """The body (Gaussian) and the ±1 indicator, whose law given the speed and θ is a sign flipped with
+        probability ``flip_prob``: Bernoulli."""
+        return ObsGroup("body", self.state_size(params)), ObsGroup("cue", 1, "bernoulli")
+
     def sample_theta(self, key: jax.Array, params: HalfCheetahParams) -> jax.Array:
         """Target speed ~ U(target_low, target_high)."""
         return jax.random.uniform(key, (), minval=params.target_low, maxval=params.target_high)
@@ -288,6 +293,10 @@ class AntGoal(BraxConfounded):
         s = self.state_size(params)
         cue = 2 if params.raw_bearing else 3
         return Observation(expert=s + 2, imitator=s + cue, oracle=s + cue + 2)
+
+    def obs_groups(self, params: AntGoalParams) -> tuple[ObsGroup, ...]:
+        """The body and the noisy cue's features, both Gaussian."""
+        return ObsGroup("body", self.state_size(params)), ObsGroup("cue", 2 if params.raw_bearing else 3)
 
     def sample_theta(self, key: jax.Array, params: AntGoalParams) -> jax.Array:
         """A goal uniform in the disc: radius R·sqrt(U), angle U(0, 2π)."""
