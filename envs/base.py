@@ -79,6 +79,8 @@ class Environment:
     normalize_views: ClassVar[bool] = False
     #: Names of the per-step extras ``step`` reports (summed per episode in evaluation).
     extras_names: ClassVar[tuple[str, ...]] = ()
+    #: A per-step extra to show per θ bin in diagnostics.png, and its label (default: the episode's return).
+    diagnostic_extra: ClassVar[tuple[str, str] | None] = None
     #: Config presets for an env loaded as ``module:Class``: preset name -> dotted overrides (``"train.iterations"``).
     presets: ClassVar[dict[str, dict[str, Any]]] = {}
 

@@ -191,6 +191,7 @@ class HalfCheetah(BraxConfounded):
     # uses 1 iteration of 4, which makes the cheetah blow up (|qd| ~ 1e17, then NaN) within 1000 steps.
     solver_ls_iterations = 8
     extras_names = ("abs_speed_error",)
+    diagnostic_extra = ("abs_speed_error", "mean |v − target| per step (m/s)")
 
     def default_params(self) -> HalfCheetahParams:
         """The paper's setting."""
@@ -275,6 +276,7 @@ class AntGoal(BraxConfounded):
     brax_name = "ant"
     brax_kwargs = {"terminate_when_unhealthy": False, "exclude_current_positions_from_observation": False}  # noqa: RUF012
     extras_names = ("distance", "unhealthy")
+    diagnostic_extra = ("distance", "mean distance to the goal per step")
 
     def default_params(self) -> AntGoalParams:
         """The paper's setting."""

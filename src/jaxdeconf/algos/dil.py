@@ -145,6 +145,10 @@ class Deconfounded(Algorithm):
         mean, _ = losses.encoder_scan(encoder, state.encoder.params["encoder"], obs, prev)
         return jax.lax.stop_gradient(mean)
 
+    def belief(self, state: TrainState, traj: Trajectory) -> jax.Array:
+        """q_phi's posterior means along ``traj``."""
+        return self.posterior_means(state, traj)
+
     def policy_context(self, state: TrainState) -> jax.Array | None:
         """The encoder is frozen during the policy steps, so when the policy steps would encode at least as many
         episodes as the buffer holds, encoding the whole buffer once gives the same latents for less work."""
