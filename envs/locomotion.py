@@ -14,10 +14,11 @@ step (as Brax measures it). 1000 steps. The reference code's variant: ``flip_pro
 
 ant_goal: θ = a goal in the disc of radius 10 (radius 10·sqrt(U), uniform angle). The state is Brax's ant
 observation *with* the torso's x and y (29-d), because the goal is meaningless without the position. The imitator
-sees the state plus the goal's distance and world-frame bearing atan2(Δy, Δx) from the torso, each with N(0, 0.1²)
-noise, the noisy bearing b given as (cos b, sin b) (``raw_bearing=True``: as the angle itself, which jumps by 2π
-where it wraps at ±π); the expert and the oracle see the state plus the goal. Reward -‖xy - goal‖₂
-(``l1_reward=True``: the reference code's L1 distance), no control cost. 200 steps.
+sees the state plus the goal's distance and world-frame bearing atan2(Δy, Δx) from the torso, each with N(0, 1)
+noise (``cue_noise``; the reference code's is 0.1), the noisy bearing b given as (cos b, sin b)
+(``raw_bearing=True``: as the angle itself, which jumps by 2π where it wraps at ±π); the expert and the oracle see
+the state plus the goal. Reward -‖xy - goal‖₂ (``l1_reward=True``: the reference code's L1 distance), no control
+cost. 200 steps.
 
 Termination: neither env terminates. Brax's ant ends an episode when its torso leaves z in [0.2, 1.0]; here a flipped
 ant simply keeps its fixed-length episode, keeps paying its distance, and the per-step extra ``unhealthy`` records
@@ -254,7 +255,10 @@ class AntGoalParams:
     """Parameters; ``backend``, ``horizon`` and ``l1_reward`` are static."""
 
     goal_radius: float = 10.0
-    cue_noise: float = 0.1  # Std of the noise on the imitator's (distance, bearing).
+    # Std of the noise on the imitator's (distance, bearing). At 1.0 one reading gives the bearing only to about a
+    # radian, so the direction cannot be inferred from a single observation (the paper's regime) and naive BC is
+    # confounded; the reference code's 0.1 gives it to 6°, and there all imitators nearly match the oracle.
+    cue_noise: float = 1.0
     # The imitator reads the noisy bearing b as (cos b, sin b); True gives the angle itself. As an angle, a bearing
     # near ±π wraps by 2π between steps (0.4% of the expert's steps), which tripled the spread of its one-step
     # changes on expert data (0.42 against 0.155 without the wraps) and so blurred what the decoder could score.
