@@ -11,7 +11,7 @@ import sys
 from collections.abc import Callable
 from typing import Any
 
-from jaxdeconf.envs.base import ActionSpace, Environment, Observation, StepResult
+from jaxdeconf.envs.base import ActionSpace, Environment, Observation, ObsGroup, StepResult
 from jaxdeconf.envs.check import EnvCheckError, check_env
 
 __all__ = [
@@ -19,6 +19,7 @@ __all__ = [
     "ActionSpace",
     "EnvCheckError",
     "Environment",
+    "ObsGroup",
     "Observation",
     "StepResult",
     "check_env",

@@ -53,6 +53,22 @@ class ActionSpace:
         return self.n
 
 
+@dataclasses.dataclass(frozen=True)
+class ObsGroup:
+    """A contiguous block of the imitator's view that the decoder scores with one likelihood family.
+
+    ``"gaussian"``: unit variance on the (standardised) next value or change; ``"bernoulli"``: the sign of the next
+    value, for a two-valued cue (an indicator ±1, a bit 0/1, or either standardised, whose two values straddle 0).
+    """
+
+    name: str
+    size: int
+    likelihood: str = "gaussian"
+
+
+LIKELIHOODS = ("gaussian", "bernoulli")
+
+
 class Environment:
     """Base class of confounded environments; subclasses implement the pure functions below."""
 
@@ -63,6 +79,8 @@ class Environment:
     normalize_views: ClassVar[bool] = False
     #: Names of the per-step extras ``step`` reports (summed per episode in evaluation).
     extras_names: ClassVar[tuple[str, ...]] = ()
+    #: A per-step extra to show per θ bin in diagnostics.png, and its label (default: the episode's return).
+    diagnostic_extra: ClassVar[tuple[str, str] | None] = None
     #: Config presets for an env loaded as ``module:Class``: preset name -> dotted overrides (``"train.iterations"``).
     presets: ClassVar[dict[str, dict[str, Any]]] = {}
 
@@ -85,6 +103,12 @@ class Environment:
     def obs_sizes(self, params: Any) -> Observation:
         """Sizes of the three observation views, as an Observation of ints."""
         raise NotImplementedError
+
+    def obs_groups(self, params: Any) -> tuple[ObsGroup, ...]:
+        """The imitator's view as consecutive groups, in order (default: one group under ``obs_likelihood``). An env
+        whose θ shows only in part of the view (a cue beside a θ-free body) declares them, so the decoder's loss can
+        weigh each group (``model.decoder_weighting``)."""
+        return (ObsGroup("all", self.obs_sizes(params).imitator, self.obs_likelihood),)
 
     def reset(self, key: jax.Array, params: Any) -> tuple[Any, Observation]:
         """Sample θ and an initial state; return the state and its observation."""
@@ -150,6 +174,9 @@ class NormalizedViews(Environment):
 
     def obs_sizes(self, params: Any) -> Observation:
         return self.env.obs_sizes(params)
+
+    def obs_groups(self, params: Any) -> tuple[ObsGroup, ...]:
+        return self.env.obs_groups(params)
 
     def reset(self, key: jax.Array, params: Any) -> tuple[Any, Observation]:
         state, obs = self.env.reset(key, params)

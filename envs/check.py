@@ -14,7 +14,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxdeconf.envs.base import ActionSpace, Environment, Observation, StepResult
+from jaxdeconf.envs.base import LIKELIHOODS, ActionSpace, Environment, Observation, StepResult
 
 VIEWS = ("expert", "imitator", "oracle")
 
@@ -45,6 +45,11 @@ def _check_static(env: Environment, params: Any) -> tuple[int, ActionSpace, Obse
         raise _fail(env, f"obs_sizes(params) must be an Observation of positive ints, got {sizes!r}")
     if env.obs_likelihood not in ("gaussian", "bernoulli"):
         raise _fail(env, f"obs_likelihood must be 'gaussian' or 'bernoulli', got {env.obs_likelihood!r}")
+    groups = env.obs_groups(params)
+    if any(g.likelihood not in LIKELIHOODS or int(g.size) < 1 for g in groups) or sum(
+            int(g.size) for g in groups) != int(sizes.imitator):
+        raise _fail(env, f"obs_groups(params) must split the imitator's {sizes.imitator} dimensions into groups of "
+                         f"size >= 1 with a likelihood from {LIKELIHOODS}, got {groups!r}")
     return horizon, space, sizes
 
 

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from conftest import CARTPOLE
-from jaxdeconf.envs import EnvCheckError, Observation, check_env, make, register, resolve
+from jaxdeconf.envs import EnvCheckError, Observation, ObsGroup, check_env, make, register, resolve
 from jaxdeconf.envs.bandit import Bandit, BanditParams, BanditState
 
 from jaxdeconf.config import ConfigError, build
@@ -57,9 +57,17 @@ class WrongSizeBandit(Bandit):
         return Observation(expert=1 + params.arms, imitator=3, oracle=1 + params.arms)
 
 
+class BadGroupsBandit(Bandit):
+    """Declares observation groups that do not cover its one-dimensional imitator view."""
+
+    def obs_groups(self, params: BanditParams) -> tuple[ObsGroup, ...]:
+        return ObsGroup("a", 1, "bernoulli"), ObsGroup("b", 1, "poisson")
+
+
 @pytest.mark.parametrize(
     ("env", "message"),
     [
+        (BadGroupsBandit(), "obs_groups.params. must split the imitator's 1 dimensions"),
         (LeakyBandit(), "θ is in the imitator's view"),
         (CountingBandit(), "step is not pure: it changed the environment object's attribute"),
         (NumpyNoiseBandit(), "step is not pure: two traces with the same inputs gave different"),

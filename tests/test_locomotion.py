@@ -168,7 +168,8 @@ def test_ant_goal_distribution_and_cue_noise():
     # Uniform in the disc: P(r < 5) = 1/4, and the angle is uniform.
     assert _within(float(np.mean(r < 5.0)), 0.25, 20000)
     assert _within(float(np.mean(goals[:, 0] > 0)), 0.5, 20000)
-    # The cue is (distance, bearing) plus N(0, 0.1²) on each.
+    # The cue is (distance, bearing) plus N(0, cue_noise²) on each (the reference code's 0.1 here).
+    params = params.replace(cue_noise=0.1)
     brax_state = types.SimpleNamespace(pipeline_state=types.SimpleNamespace(
         x=types.SimpleNamespace(pos=jnp.array([[1.0, 2.0, 0.5]]))))
     goal = jnp.array([4.0, 6.0])

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from jaxdeconf.envs.base import ActionSpace, Observation
+from jaxdeconf.envs.base import ActionSpace, Observation, ObsGroup
 
 from jaxdeconf import losses
 from jaxdeconf.actors import DeconfoundedActor
@@ -187,3 +187,70 @@ def test_evidence_encoder_posterior_is_the_product_of_its_factors():
     prev = jax.nn.one_hot(jax.random.randint(jax.random.key(2), (20, 4), 0, 5), 5)
     _, logvar = losses.encoder_scan(encoder, params, obs, prev)
     assert np.all(np.diff(np.asarray(logvar), axis=0) < 0)
+
+
+# --- Observation groups: each group its own likelihood, weighted by sum or per-group mean. ---
+
+GROUPS = (ObsGroup("body", 2), ObsGroup("cue", 1, "bernoulli"))
+
+
+@pytest.mark.parametrize("weighting", ["sum", "group_mean"])
+def test_grouped_nll_hand_values(weighting):
+    # Body: standardised changes (1 - 0) / 1 = 1 and (0 - 0) / 2 = 0 under N(0, 1): 0.5 + 2 * 0.5 log 2π.
+    # Cue: the next value +1 is positive, logit log 3 gives p = 3/4: -log(3/4). A negative next cue (a standardised
+    # -1 at -0.3) costs -log(1/4).
+    cur, scale, out = jnp.array([0.0, 0.0, -1.0]), jnp.array([1.0, 2.0, 1.0]), jnp.array([0.0, 0.0, math.log(3)])
+    body = 0.5 + 2 * HALF_LOG_2PI
+    for next_cue, cue in ((1.0, -math.log(0.75)), (-0.3, math.log(4.0))):
+        nxt = jnp.array([1.0, 0.0, next_cue])
+        nll = losses.grouped_nll(GROUPS, weighting, cur, nxt, out, scale)
+        expected = body + cue if weighting == "sum" else body / 2 + cue
+        assert float(nll) == pytest.approx(expected, abs=1e-5)
+
+
+def test_one_group_is_the_single_likelihood():
+    # A one-group env (bandit, LunarLander) scores exactly as without groups, under either weighting's "sum".
+    cur, nxt, out = jnp.array([[0.0, 1.0]]), jnp.array([[1.0, 0.0]]), jnp.array([[0.3, -2.0]])
+    one = (ObsGroup("all", 2, "bernoulli"),)
+    assert float(losses.grouped_nll(one, "sum", cur, nxt, out, None)[0]) == float(
+        losses.obs_nll("bernoulli", nxt, out)[0])
+    scale = jnp.array([0.5, 2.0])
+    one = (ObsGroup("all", 2),)
+    assert float(losses.grouped_nll(one, "sum", cur, nxt, out, scale)[0]) == pytest.approx(
+        float(losses.gaussian_nll((nxt - cur) / scale, out)[0]), rel=1e-6)
+
+
+@pytest.mark.parametrize("weighting", ["sum", "group_mean"])
+def test_grouped_elbo_scan_matches_plain_loop(weighting):
+    encoder, decoder = Encoder(8, 4, 6, 3), Decoder(8, 4, 3)
+    k1, k2, k3, k4 = jax.random.split(jax.random.key(5), 4)
+    T, B, steps = 6, 2, 3
+    body = jax.random.normal(k3, (T + 1, B, 2))
+    cue = jnp.where(jax.random.bernoulli(k4, 0.5, (T + 1, B, 1)), 1.0, -1.0)
+    obs = jnp.concatenate([body, cue], axis=-1)
+    feats = jax.nn.one_hot(jnp.arange(T * B).reshape(T, B) % 5, 5)
+    valid = jnp.arange(T)[:, None] < jnp.array([T, 4])[None, :]
+    params = {"encoder": encoder.init(k1, jnp.zeros((1, 3)), jnp.zeros((1, 5))),
+              "decoder": decoder.init(k2, jnp.zeros((1, 3)), jnp.zeros((1, 3)), jnp.zeros((1, 5)))}
+    scale = jnp.array([0.5, 2.0, 1.0])
+    key = jax.random.key(6)
+    loss, _ = losses.elbo_loss(params, obs, feats, valid, key, encoder=encoder, decoder=decoder, beta=0.3,
+                               steps=steps, likelihood="gaussian", delta_scale=scale, groups=GROUPS,
+                               weighting=weighting)
+    eps = jax.random.normal(key, (T, B, 3))
+    carry, prev = jnp.zeros((B, encoder.hidden)), (jnp.zeros((B, 3)), jnp.zeros((B, 3)))
+    total, count = 0.0, 0.0
+    for t in range(T):
+        x = encoder.apply(params["encoder"], obs[t], feats[t - 1] if t > 0 else jnp.zeros((B, 5)), method="embed")
+        carry, (mean, logvar) = encoder.apply(params["encoder"], carry, x, method="recur")
+        z = mean + jnp.exp(0.5 * logvar) * eps[t]
+        term = 0.3 * losses.kl_diag_gaussian(mean, logvar, *prev)
+        for k in range(min(steps, T - t)):
+            out = decoder.apply(params["decoder"], z, obs[t + k], feats[t + k])
+            body_nll = losses.gaussian_nll((obs[t + k + 1, :, :2] - obs[t + k, :, :2]) / scale[:2], out[:, :2])
+            cue_nll = losses.bernoulli_nll((obs[t + k + 1, :, 2:] > 0).astype(jnp.float32), out[:, 2:])
+            term = term + (body_nll / 2 + cue_nll if weighting == "group_mean" else body_nll + cue_nll) * valid[t + k]
+        total += jnp.sum(term * valid[t])
+        count += jnp.sum(valid[t])
+        prev = (mean, logvar)
+    assert float(loss) == pytest.approx(float(total / count), rel=1e-5)

@@ -11,6 +11,8 @@ from jaxdeconf.algos import NAMES as ALGOS
 from jaxdeconf.envs import parse_bool
 
 ENCODERS = ("gru", "evidence")
+WEIGHTINGS = ("sum", "group_mean")  # losses.WEIGHTINGS (not imported: this module stays free of JAX).
+GROUP_LIKELIHOODS = ("declared", "gaussian")
 DISC_INPUTS = ("next", "transition")
 GAIL_REWARDS = ("discriminator", "env")
 
@@ -46,6 +48,12 @@ class ModelConfig:
     encoder_deltas: bool = True
     # q_phi's recurrence: "gru" (the paper's) or "evidence" (a product of per-step Gaussian factors; models.py).
     encoder: str = _field("gru", ENCODERS)
+    # How the decoder weighs the groups of the imitator's view an env declares (``Environment.obs_groups``: e.g. the
+    # body and the cue): "sum" adds every dimension's NLL, "group_mean" averages within each group and adds the groups
+    # (the reference code's per-key MSE). One-group envs (bandit, LunarLander) are the same under both.
+    decoder_weighting: str = _field("sum", WEIGHTINGS)
+    # Each group's likelihood: "declared" (the env's: e.g. Bernoulli for a ±1 indicator) or "gaussian" for all.
+    group_likelihood: str = _field("declared", GROUP_LIKELIHOODS)
 
 
 @dataclasses.dataclass(frozen=True)

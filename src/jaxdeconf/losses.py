@@ -42,6 +42,34 @@ def obs_nll(likelihood: str, x: jax.Array, out: jax.Array) -> jax.Array:
     return gaussian_nll(x, out)
 
 
+WEIGHTINGS = ("sum", "group_mean")
+
+
+def grouped_nll(
+    groups: tuple[Any, ...], weighting: str, cur: jax.Array, nxt: jax.Array, out: jax.Array,
+    delta_scale: jax.Array | None,
+) -> jax.Array:
+    """The decoder's NLL of the next observation ``nxt`` [..., d] from its outputs ``out``, group by group.
+
+    ``groups`` (``envs.ObsGroup``) split the last axis in order. A Gaussian group scores the standardised change
+    (nxt - cur) / delta_scale (or ``nxt`` when ``delta_scale`` is None) under unit variance; a Bernoulli group scores
+    whether each next value is positive, from logits. ``weighting="sum"`` adds every dimension's NLL; ``"group_mean"``
+    averages within each group and adds the groups (the reference code's per-key MSE), so a one-dimensional cue
+    weighs as much as a whole body.
+    """
+    total, start = jnp.zeros(out.shape[:-1], out.dtype), 0
+    for group in groups:
+        part = slice(start, start + group.size)
+        start += group.size
+        if group.likelihood == "bernoulli":
+            nll = bernoulli_nll((nxt[..., part] > 0).astype(out.dtype), out[..., part])
+        else:
+            target = nxt[..., part] if delta_scale is None else (nxt - cur)[..., part] / delta_scale[part]
+            nll = gaussian_nll(target, out[..., part])
+        total = total + (nll / group.size if weighting == "group_mean" else nll)
+    return total
+
+
 def masked_mean(x: jax.Array, mask: jax.Array) -> jax.Array:
     """Mean of ``x`` over entries where ``mask`` holds (0 if none)."""
     mask = mask.astype(x.dtype)
@@ -109,13 +137,16 @@ def prediction_nll(
     steps: int,
     likelihood: str,
     delta_scale: jax.Array | None = None,
+    groups: tuple[Any, ...] | None = None,
+    weighting: str = "sum",
 ) -> tuple[jax.Array, jax.Array]:
     """K-step teacher-forced prediction NLL summed over k, and its mask count, per step [T, B].
 
     From z_t the decoder predicts s_{t+k+1} given the true s_{t+k} and a_{t+k}, for k < K and t + k < T with step
     t + k valid. obs is [T+1, B, d]; z, action_feats and valid are [T, ...]. With ``delta_scale`` [d] (Gaussian
     likelihood only) the target is the standardised change (s_{t+k+1} - s_{t+k}) / delta_scale, so that small but
-    informative changes (an engine's kick) are not drowned by a unit variance.
+    informative changes (an engine's kick) are not drowned by a unit variance. With ``groups`` the NLL is
+    ``grouped_nll``'s (each group's own family, weighted by ``weighting``); without, one ``likelihood`` for all.
     """
     T = valid.shape[0]
     total = jnp.zeros(valid.shape, jnp.float32)
@@ -126,8 +157,12 @@ def prediction_nll(
         act = shift_ahead(action_feats, k)
         mask = shift_ahead(valid.astype(jnp.float32), k)
         out = decoder.apply(params, z, cur, act)
-        target = nxt if delta_scale is None else (nxt - cur) / delta_scale
-        total = total + obs_nll(likelihood, target, out) * mask
+        if groups is None:
+            target = nxt if delta_scale is None else (nxt - cur) / delta_scale
+            nll = obs_nll(likelihood, target, out)
+        else:
+            nll = grouped_nll(groups, weighting, cur, nxt, out, delta_scale)
+        total = total + nll * mask
         count = count + mask
     return total, count
 
@@ -146,9 +181,12 @@ def elbo_loss(
     likelihood: str,
     delta_scale: jax.Array | None = None,
     encoder_delta_scale: jax.Array | None = None,
+    groups: tuple[Any, ...] | None = None,
+    weighting: str = "sum",
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Negative sequential ELBO (eq. 11) per valid step, on exploration data (``delta_scale``: see prediction_nll;
-    with ``encoder_delta_scale`` the encoder reads ``transition_inputs`` standardised by it).
+    with ``encoder_delta_scale`` the encoder reads ``transition_inputs`` standardised by it; ``groups`` and
+    ``weighting``: see ``grouped_nll``).
 
     params: {"encoder": ..., "decoder": ...}; obs [T+1, B, d] (imitator view); action_feats [T, B, A]; valid [T, B].
     At step t the posterior q_t = q_phi(. | s_{0:t}, a_{0:t-1}) is sampled by reparameterisation; its prior is q_{t-1}
@@ -158,7 +196,8 @@ def elbo_loss(
     enc_obs = obs[:T] if encoder_delta_scale is None else transition_inputs(obs[:T], encoder_delta_scale)
     mean, logvar = encoder_scan(encoder, params["encoder"], enc_obs, prev_actions(action_feats))
     z = mean + jnp.exp(0.5 * logvar) * jax.random.normal(key, mean.shape)
-    nll, _ = prediction_nll(decoder, params["decoder"], z, obs, action_feats, valid, steps, likelihood, delta_scale)
+    nll, _ = prediction_nll(decoder, params["decoder"], z, obs, action_feats, valid, steps, likelihood, delta_scale,
+                            groups, weighting)
     kl = sequential_kl(mean, logvar)
     loss = masked_mean(nll + beta * kl, valid)
     metrics = {"elbo_nll": masked_mean(nll, valid), "elbo_kl": masked_mean(kl, valid)}

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import io
 import pathlib
+import warnings
 from typing import Any
 
 import numpy as np
@@ -145,7 +146,7 @@ def plot(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> l
 
     written.append(plot_comparison(folder, config, refs))
     if refs is None:
-        return written
+        return [*written, *plot_diagnostics(folder, config)]
     fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
     for ax, where, title in zip(axes, ("expert", "online"), ("on expert data", "online"), strict=True):
         for algo in config.algos:
@@ -166,6 +167,59 @@ def plot(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> l
     _save_figure(fig, folder / "p_best.png")
     written.append(folder / "p_best.png")
     return written
+
+
+def plot_diagnostics(folder: pathlib.Path, config: Config, bins: int = 6) -> list[pathlib.Path]:
+    """diagnostics.png: the θ probe's held-out R² per step of each imitator with a belief (online, and on the
+    expert's episodes), and each imitator's per-θ-bin performance at the final evaluation; mean ± s.e. over seeds."""
+    import matplotlib.pyplot as plt
+
+    from jaxdeconf.envs import make
+
+    env, params = make(config.env, **config.env_params)
+    curves = {a: dict(np.load(folder / a / "curves.npz")) for a in config.algos if (folder / a / "curves.npz").exists()}
+    if not curves or "episode_theta" not in next(iter(curves.values())):
+        return []
+    fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4))
+    for algo, c in curves.items():
+        for where, style in (("online", "-"), ("expert", "--")):
+            probe = c.get(f"theta_probe_{where}")
+            if probe is not None and np.isfinite(probe).any():
+                m, se = mean_se(probe)
+                t = np.arange(m.size)
+                left.plot(t, m, style, color=COLORS.get(algo), label=f"{algo} ({where} episodes)")
+                left.fill_between(t, m - se, m + se, alpha=0.2, color=COLORS.get(algo))
+    left.set(xlabel="step t", ylabel="held-out R² of θ from the belief", title="how much of θ the belief carries")
+    left.set_ylim(-0.2, 1.0)
+    left.legend(fontsize=7)
+    _per_theta_bin(right, curves, env, params, bins)
+    fig.tight_layout()
+    _save_figure(fig, folder / "diagnostics.png")
+    return [folder / "diagnostics.png"]
+
+
+def _per_theta_bin(ax: Any, curves: dict[str, dict[str, np.ndarray]], env: Any, params: Any, bins: int) -> None:
+    """Each algorithm's per-episode performance (the env's ``diagnostic_extra`` per step, or the return) by θ bin."""
+    extra = getattr(env, "diagnostic_extra", None)
+    key, label = (f"episode_{extra[0]}", extra[1]) if extra else ("episode_return", "return")
+    scale = env.horizon(params) if extra else 1
+    thetas = np.concatenate([c["episode_theta"].ravel() for c in curves.values()]).astype(np.float64)
+    values = np.unique(thetas)
+    if values.size <= bins:  # A θ of a few values (LunarLander's swap): one bin each.
+        centres, edges = values, np.r_[values[0] - 1.0, 0.5 * (values[1:] + values[:-1]), values[-1] + 1.0]
+    else:
+        edges = np.linspace(thetas.min(), thetas.max(), bins + 1)
+        centres = 0.5 * (edges[1:] + edges[:-1])
+    for algo, c in curves.items():
+        which = np.clip(np.digitize(c["episode_theta"].astype(np.float64), edges) - 1, 0, centres.size - 1)
+        per_seed = np.array([[np.mean(v[w == b]) / scale if np.any(w == b) else np.nan for b in range(centres.size)]
+                             for v, w in zip(c[key], which, strict=True)])
+        with np.errstate(invalid="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # A bin no episode of a seed fell in.
+            m, se = mean_se(per_seed)
+        ax.errorbar(centres, m, yerr=se, marker="o", ms=3, capsize=2, color=COLORS.get(algo), label=algo)
+    ax.set(xlabel="θ (per episode; its norm when θ is a vector)", ylabel=label, title="final evaluation by θ")
+    ax.legend(fontsize=7)
 
 
 def _return_curves(ax: Any, folder: pathlib.Path, config: Config, window: int | None, alpha: float) -> None:

@@ -74,6 +74,7 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
 
 # What this tool writes in a results folder, and in each algorithm's subfolder: --overwrite deletes nothing else.
 RESULT_FILES = {"config.json", "references.json", "summary.md", "summary.csv", "learning_curves.png", "p_best.png",
+                "diagnostics.png",
                 "comparison.png", "render", LOCK_NAME}
 ALGO_FILES = {"metrics.jsonl", "curves.npz", "DONE", "checkpoints", LOCK_NAME}
 

@@ -23,7 +23,8 @@ from jaxdeconf.config import Config, ConfigError
 from jaxdeconf.envs import make
 from jaxdeconf.files import append_lines, dumps_row, parse_row, remove_temporaries, write_atomic
 
-CURVES = ("p_best_online", "p_best_expert")
+CURVES = ("p_best_online", "p_best_expert")  # Every run's curves.npz holds these; any other array output also goes
+# there (the diagnostics: per-step θ probes, per-episode θ, returns and extras).
 
 
 def seed_keys(config: Config) -> jax.Array:
@@ -45,7 +46,7 @@ def compiled_chunk(algo: Algorithm, length: int) -> Any:
 def chunk_rows(name: str, config: Config, start: int, per_iter: dict, evals: dict) -> list[dict[str, Any]]:
     """Metrics rows (one per seed and iteration) from one chunk's outputs; eval metrics go on its last iteration."""
     per_iter = jax.tree.map(np.asarray, per_iter)
-    evals = {k: np.asarray(v) for k, v in evals.items() if k not in CURVES}
+    evals = {k: np.asarray(v) for k, v in evals.items() if np.ndim(v) == 1}  # One number per seed; arrays: curves.
     length = next(iter(per_iter.values())).shape[1] if per_iter else 0
     rows = []
     for seed in range(config.seeds):
@@ -154,7 +155,7 @@ class _Loop:
 def _save_curves(folder: pathlib.Path, evals: dict) -> None:
     """Write the last evaluation's curves atomically."""
     buf = io.BytesIO()
-    np.savez(buf, **{k: np.asarray(evals[k]) for k in CURVES})
+    np.savez(buf, **{k: np.asarray(v) for k, v in evals.items() if np.ndim(v) > 1})
     write_atomic(folder / "curves.npz", buf.getvalue())
 
 

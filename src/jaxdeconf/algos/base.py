@@ -18,7 +18,7 @@ import numpy as np
 import optax
 from flax import struct
 
-from jaxdeconf import losses
+from jaxdeconf import diagnostics, losses
 from jaxdeconf.actors import ExpertActor
 from jaxdeconf.config import Config
 from jaxdeconf.data import (
@@ -227,7 +227,24 @@ class Algorithm:
         }
         for name, value in traj.extras.items():
             metrics[f"eval_{name}"] = jnp.mean(jnp.sum(value, axis=0))
-        return metrics
+        return {**metrics, **self.diagnose(state, traj, expert_traj)}
+
+    def belief(self, state: TrainState, traj: Trajectory) -> jax.Array | None:
+        """The imitator's belief about θ along ``traj`` [T, B, L], for algorithms that hold one (default: none)."""
+        return None
+
+    def diagnose(self, state: TrainState, traj: Trajectory, expert_traj: Trajectory) -> dict[str, jax.Array]:
+        """Per-episode θ, return and extras of the online episodes, and (with a belief) the per-step θ probe online
+        and on the expert's episodes (``diagnostics``); NaN curves without a belief."""
+        theta = diagnostics.episode_theta(self.env, self.env_params, traj.obs.oracle[0])
+        out = {"episode_theta": diagnostics.theta_scalar(theta), "episode_return": jnp.sum(traj.reward, axis=0),
+               **{f"episode_{k}": jnp.sum(v, axis=0) for k, v in traj.extras.items()}}
+        for where, episodes, th in (("online", traj, theta), ("expert", expert_traj, diagnostics.episode_theta(
+                self.env, self.env_params, expert_traj.obs.oracle[0]))):
+            belief = self.belief(state, episodes)
+            out[f"theta_probe_{where}"] = (jnp.full((episodes.horizon,), jnp.nan) if belief is None
+                                           else diagnostics.theta_probe(belief, th, episodes.valid))
+        return out
 
     def train_chunk(self, state: TrainState, length: int) -> tuple[TrainState, dict[str, Any], dict[str, Any]]:
         """``length`` iterations then one evaluation: (state, per-iteration metrics [length], eval metrics)."""

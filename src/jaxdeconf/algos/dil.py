@@ -22,6 +22,7 @@ from jaxdeconf.algos.base import (
     observation_delta_scale,
 )
 from jaxdeconf.data import Trajectory, buffer_add, buffer_sample, rollout
+from jaxdeconf.envs import ObsGroup
 from jaxdeconf.models import Decoder, Encoder, EvidenceEncoder, LatentPolicy, action_features, head_size
 
 
@@ -59,6 +60,14 @@ class Deconfounded(Algorithm):
             Decoder(m.width, m.action_embed, size),
             LatentPolicy(m.width, head_size(self.space)),
         )
+
+    @property
+    def decoder_groups(self) -> tuple[ObsGroup, ...]:
+        """The env's groups of the imitator's view, each with its likelihood (``model.group_likelihood``)."""
+        groups = self.env.obs_groups(self.env_params)
+        if self.config.model.group_likelihood == "gaussian":
+            groups = tuple(dataclasses.replace(g, likelihood="gaussian") for g in groups)
+        return groups
 
     @property
     def encoder_tx(self) -> optax.GradientTransformation:
@@ -113,6 +122,8 @@ class Deconfounded(Algorithm):
             likelihood=self.env.obs_likelihood,
             delta_scale=self.delta_scale,
             encoder_delta_scale=self.encoder_scale,
+            groups=self.decoder_groups,
+            weighting=self.config.model.decoder_weighting,
         )
         grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
 
@@ -133,6 +144,10 @@ class Deconfounded(Algorithm):
         prev = losses.prev_actions(action_features(self.space, traj.action))
         mean, _ = losses.encoder_scan(encoder, state.encoder.params["encoder"], obs, prev)
         return jax.lax.stop_gradient(mean)
+
+    def belief(self, state: TrainState, traj: Trajectory) -> jax.Array:
+        """q_phi's posterior means along ``traj``."""
+        return self.posterior_means(state, traj)
 
     def policy_context(self, state: TrainState) -> jax.Array | None:
         """The encoder is frozen during the policy steps, so when the policy steps would encode at least as many
