@@ -111,10 +111,11 @@ class DeconfoundedOffline(Deconfounded):
         return SyntheticBatch(obs=obs, action=action, valid=data.valid[:, idx], latent=theta)
 
     def update_encoder(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
-        """``offline.online_steps`` steps of q_on on the sequential ELBO (eq. 11), each on fresh synthetic episodes;
-        the decoder is the VAE's p_psi held frozen, so q_on's latent space is the one pi_eta was trained in."""
+        """``offline.online_steps`` steps of q_on on the sequential ELBO (eq. 11, KL weight ``offline.online_beta``),
+        each on fresh synthetic episodes; the decoder is the VAE's p_psi held frozen, so q_on's latent space is the one
+        pi_eta was trained in."""
         frozen = jax.lax.stop_gradient(state.encoder.params["decoder"])
-        loss_fn = self.elbo_fn
+        loss_fn = functools.partial(self.elbo_fn, beta=self.config.offline.online_beta)
 
         def online_loss(params: Any, batch: SyntheticBatch, noise_key: jax.Array) -> tuple[jax.Array, dict]:
             feats = action_features(self.space, batch.action)
