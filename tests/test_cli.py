@@ -32,7 +32,7 @@ def _bad(capfd, argv, expected):
 # ``error:`` line on stderr and exit code 2, before anything is written or compiled.
 BAD_INPUTS = [
     (["--env", "cartpole"], "unknown env 'cartpole'; allowed: ant_goal, bandit, half_cheetah, lunar_lander"),
-    (["--algo", "bc,sqil"], "unknown algorithm 'sqil'; allowed: bc, oracle, dil, dagger, gail"),
+    (["--algo", "bc,sqil"], "unknown algorithm 'sqil'; allowed: bc, oracle, dil, dil_offline, dagger, gail"),
     (["--set", "dagger.anneal_iterations=-1"], "dagger.anneal_iterations=-1 is not allowed: need an integer >= 0"),
     (["--set", "gail.disc_steps=0"], "gail.disc_steps=0 is not allowed: need a positive integer"),
     (["--set", "gail.lr=nan"], "gail.lr=nan is not allowed: need a finite number"),

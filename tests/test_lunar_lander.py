@@ -270,7 +270,7 @@ def test_shipped_expert_lands_and_knows_theta():
 # Each compiles the lander into three rollouts (about a minute apiece on one core), so they run in the slow tier; the
 # default tier's training-loop tests run the same code on the bandit.
 @pytest.mark.slow
-@pytest.mark.parametrize("algo", ["dil", "bc", "oracle"])
+@pytest.mark.parametrize("algo", ["dil", "bc", "oracle", "dil_offline"])
 def test_algorithms_train_on_lunar_lander(tmp_path, algo):
     from conftest import TINY
 

@@ -15,6 +15,7 @@ WEIGHTINGS = ("sum", "group_mean")  # losses.WEIGHTINGS (not imported: this modu
 GROUP_LIKELIHOODS = ("declared", "gaussian")
 DISC_INPUTS = ("next", "transition")
 GAIL_REWARDS = ("discriminator", "env")
+EXPLORERS = ("uniform", "policy")
 
 
 class ConfigError(ValueError):
@@ -112,6 +113,29 @@ class GailConfig:
 
 
 @dataclasses.dataclass(frozen=True)
+class OfflineConfig:
+    """dil_offline (the paper's Algorithm 3): an offline VAE over expert episodes, and the online encoder q_on trained
+    on synthetic episodes of the VAE's dynamics model. Shared fields: a VAE step takes ``train.batch_size`` expert
+    episodes; q_off, p_psi and q_on learn at ``train.encoder_lr``, pi_eta at ``train.policy_lr``; q_on's ELBO uses
+    ``train.prediction_steps``; during ``train.warmup`` only the VAE trains."""
+
+    vae_steps: int = _field(16, ">=1")  # Offline-ELBO (eq. 12) gradient steps per iteration: q_off, p_psi and pi_eta.
+    online_steps: int = _field(16, ">=1")  # Online-ELBO (eq. 11) gradient steps of q_on per iteration.
+    synthetic_episodes: int = _field(16, ">=1")  # Synthetic episodes rolled out through p_psi for each online step.
+    # The theta-independent Markov policy that acts in synthetic episodes: "uniform" (uniform over the arms, or over
+    # the box [-1, 1]^n) or "policy" (pi_eta on a second latent drawn from the prior, independent of the episode's).
+    explore: str = _field("uniform", EXPLORERS)
+    beta: float = _field(1.0, ">=0")  # KL weight of the offline ELBO (eq. 12), against N(0, I).
+    # KL weight of q_on's sequential ELBO (eq. 11) on synthetic episodes. 1 makes q_on the variational posterior
+    # under the prior and p_psi; on the bandit (2 seeds, 100 iterations) dil's 0.001 left it at 46.4 best arms, 1 at
+    # 49.1.
+    online_beta: float = _field(1.0, ">=0")
+    # Gaussian likelihoods: synthetic next observations are p_psi's mean change plus this many standard deviations of
+    # its unit-variance noise (0: the mean; 1: a sample). Bernoulli observations are always sampled.
+    dynamics_noise: float = _field(0.0, ">=0")
+
+
+@dataclasses.dataclass(frozen=True)
 class Config:
     """A whole experiment: environment, algorithms, seeds, sizes and training constants."""
 
@@ -124,6 +148,7 @@ class Config:
     train: TrainConfig = TrainConfig()
     dagger: DaggerConfig = DaggerConfig()
     gail: GailConfig = GailConfig()
+    offline: OfflineConfig = OfflineConfig()
 
     @property
     def num_chunks(self) -> int:
@@ -456,6 +481,7 @@ def from_dict(data: dict[str, Any]) -> Config:
         train=TrainConfig(**data["train"]),
         dagger=DaggerConfig(**data.get("dagger", {})),
         gail=GailConfig(**data.get("gail", {})),
+        offline=OfflineConfig(**data.get("offline", {})),
     )
 
 

@@ -11,7 +11,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from jaxdeconf.models import Decoder, Encoder, EvidenceEncoder, RecurrentPolicy, log_prob
+from jaxdeconf.models import Decoder, Encoder, EvidenceEncoder, LatentPolicy, RecurrentPolicy, action_features, log_prob
 
 LOG_2PI = jnp.log(2.0 * jnp.pi)
 
@@ -202,6 +202,72 @@ def elbo_loss(
     loss = masked_mean(nll + beta * kl, valid)
     metrics = {"elbo_nll": masked_mean(nll, valid), "elbo_kl": masked_mean(kl, valid)}
     return loss, metrics
+
+
+def trajectory_posterior(
+    encoder: Encoder | EvidenceEncoder, params: Any, obs: jax.Array, prev_action: jax.Array, read: jax.Array
+) -> tuple[jax.Array, jax.Array]:
+    """q_off's mean and log-variance [B, L] after reading a whole sequence (obs and prev_action [S, B, ...]).
+
+    Step i is read where ``read`` [S, B] holds; elsewhere the recurrent state and the output are carried unchanged,
+    so an episode that ended early is encoded exactly as if its sequence stopped at its last real step.
+    """
+    inputs = encoder.apply(params, obs, prev_action, method="embed")
+    batch, latent = obs.shape[1:-1], encoder.latent
+    init = (jnp.zeros((*batch, encoder.hidden), jnp.float32), jnp.zeros((*batch, latent), jnp.float32),
+            jnp.zeros((*batch, latent), jnp.float32))
+
+    def body(carry: tuple, xs: tuple[jax.Array, jax.Array]) -> tuple[tuple, None]:
+        x, keep = xs
+        h, (mean, logvar) = encoder.apply(params, carry[0], x, method="recur")
+        new = (h, mean, logvar)
+        return jax.tree.map(lambda n, o: jnp.where(keep[:, None], n, o), new, carry), None
+
+    (_, mean, logvar), _ = jax.lax.scan(body, init, (inputs, read))
+    return mean, logvar
+
+
+def offline_elbo_loss(
+    params: dict[str, Any],
+    obs: jax.Array,
+    action: jax.Array,
+    valid: jax.Array,
+    key: jax.Array,
+    *,
+    encoder: Encoder | EvidenceEncoder,
+    decoder: Decoder,
+    policy: LatentPolicy,
+    space: Any,
+    beta: float,
+    likelihood: str,
+    delta_scale: jax.Array | None = None,
+    encoder_delta_scale: jax.Array | None = None,
+) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """Negative offline ELBO (the paper's eq. 12) of whole expert episodes, per episode and divided by T.
+
+    params: {"offline": q_off, "decoder": p_psi, "policy": pi_eta}; obs [T+1, B, d] (imitator view); action [T, B] or
+    [T, B, A]; valid [T, B]. q_off reads the whole episode (s_0, then (a_{t-1}, s_t) up to the last real step) and
+    gives one θ-tilde per episode, sampled by reparameterisation and shared by every step. Per episode the loss is
+    sum over valid t of [-log p_psi(s_{t+1} | s_t, a_t, θ-tilde) - log pi_eta(a_t | s_t, θ-tilde)]
+    + beta KL(q_off || N(0, I)); the batch mean of that is divided by the constant T, so that gradient sizes do not
+    grow with the horizon. ``delta_scale`` and ``encoder_delta_scale``: as in ``elbo_loss``.
+    """
+    T = valid.shape[0]
+    feats = action_features(space, action)
+    # q_off reads s_0 .. s_T; s_{t+1} is real where step t was valid (s_0 always).
+    enc_obs = obs if encoder_delta_scale is None else transition_inputs(obs, encoder_delta_scale)
+    enc_prev = jnp.concatenate([jnp.zeros_like(feats[:1]), feats], axis=0)
+    read = jnp.concatenate([jnp.ones_like(valid[:1]), valid], axis=0)
+    mean, logvar = trajectory_posterior(encoder, params["offline"], enc_obs, enc_prev, read)
+    z = mean + jnp.exp(0.5 * logvar) * jax.random.normal(key, mean.shape)
+    z_t = jnp.broadcast_to(z, (T, *z.shape))
+    dynamics_nll, _ = prediction_nll(decoder, params["decoder"], z_t, obs, feats, valid, 1, likelihood, delta_scale)
+    policy_nll = -log_prob(space, policy.apply(params["policy"], obs[:T], z_t), action) * valid
+    kl = kl_diag_gaussian(mean, logvar, jnp.zeros_like(mean), jnp.zeros_like(logvar))
+    per_episode = jnp.sum(dynamics_nll + policy_nll, axis=0) + beta * kl
+    metrics = {"vae_dynamics_nll": masked_mean(dynamics_nll, valid), "vae_policy_nll": masked_mean(policy_nll, valid),
+               "vae_kl": jnp.mean(kl)}
+    return jnp.mean(per_episode) / T, metrics
 
 
 def nll_from_outputs(space: Any, out: jax.Array, action: jax.Array, valid: jax.Array) -> jax.Array:

@@ -54,7 +54,8 @@ def estimate(config: Config, algo: str, env: Any, params: Any) -> Estimate:
     # and the decoder's K predictions of the next observations.
     obs = env.obs_sizes(params).imitator
     per_step = 4 * (4 * (m.gru + m.bc_gru) + 6 * m.width + 2 * m.latent + t.prediction_steps * (2 * m.width + obs))
-    batch = max(t.batch_size, t.episodes_per_iter, t.eval_episodes, generated)
+    synthetic = config.offline.synthetic_episodes if algo == "dil_offline" else 0  # Rolled out through p_psi.
+    batch = max(t.batch_size, t.episodes_per_iter, t.eval_episodes, generated, synthetic)
     working = batch * (episode_bytes(env, params) + horizon * per_step)
     return Estimate(algo=algo, buffers=config.seeds * stored * episode_bytes(env, params),
                     params=config.seeds * param_bytes, working=config.seeds * working)

@@ -14,8 +14,10 @@ from jaxdeconf.config import Config
 from jaxdeconf.files import read_rows, write_atomic
 
 # Which exact reference each algorithm should match on the bandit (see the paper, section 5.1).
-TARGET = {"bc": "conditional", "dil": "interventional", "oracle": "expert", "dagger": "interventional"}
-COLORS = {"bc": "tab:red", "oracle": "tab:green", "dil": "tab:blue", "dagger": "tab:purple", "gail": "tab:orange"}
+TARGET = {"bc": "conditional", "dil": "interventional", "oracle": "expert", "dagger": "interventional",
+          "dil_offline": "interventional"}
+COLORS = {"bc": "tab:red", "oracle": "tab:green", "dil": "tab:blue", "dagger": "tab:purple", "gail": "tab:orange",
+          "dil_offline": "tab:cyan"}
 SMOOTH = 5  # Sliding window (evaluations) of comparison.png, as in the paper's figures.
 
 

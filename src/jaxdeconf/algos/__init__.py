@@ -20,6 +20,7 @@ REGISTRY: dict[str, tuple[str, str, dict[str, Any]]] = {
     "bc": ("jaxdeconf.algos.bc", "BehaviourCloning", {"view": "imitator"}),
     "oracle": ("jaxdeconf.algos.bc", "BehaviourCloning", {"view": "oracle"}),
     "dil": ("jaxdeconf.algos.dil", "Deconfounded", {}),
+    "dil_offline": ("jaxdeconf.algos.dil_offline", "DeconfoundedOffline", {}),
     "dagger": ("jaxdeconf.algos.dagger", "DAgger", {}),
     "gail": ("jaxdeconf.algos.gail", "GAIL", {}),
 }

@@ -109,11 +109,12 @@ class Deconfounded(Algorithm):
         state = state.replace(explore_buffer=buffer_add(state.explore_buffer, traj))
         return state, {"train_return": jnp.mean(jnp.sum(traj.reward, axis=0))}
 
-    def update_encoder(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
-        """``encoder_steps`` ELBO steps on batches of whole exploration episodes."""
+    @property
+    def elbo_fn(self) -> Any:
+        """``losses.elbo_loss`` bound to this algorithm's networks, likelihood, scales and ``train.*`` constants."""
         t = self.config.train
         encoder, decoder, _ = self.networks
-        loss_fn = functools.partial(
+        return functools.partial(
             losses.elbo_loss,
             encoder=encoder,
             decoder=decoder,
@@ -125,7 +126,11 @@ class Deconfounded(Algorithm):
             groups=self.decoder_groups,
             weighting=self.config.model.decoder_weighting,
         )
-        grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
+
+    def update_encoder(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
+        """``encoder_steps`` ELBO steps on batches of whole exploration episodes."""
+        t = self.config.train
+        grad_fn = jax.value_and_grad(self.elbo_fn, has_aux=True)
 
         def step(learner: Learner, step_key: jax.Array) -> tuple[Learner, dict[str, jax.Array]]:
             k_batch, k_noise = jax.random.split(step_key)
