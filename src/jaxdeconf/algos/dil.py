@@ -62,11 +62,15 @@ class Deconfounded(Algorithm):
         )
 
     @property
-    def decoder_groups(self) -> tuple[ObsGroup, ...]:
-        """The env's groups of the imitator's view, each with its likelihood (``model.group_likelihood``)."""
+    def decoder_groups(self) -> tuple[ObsGroup, ...] | None:
+        """The env's groups of the imitator's view, each with its likelihood (``model.group_likelihood``); None when
+        they change nothing (summed, all under the env's likelihood), so the decoder's loss is the one-family one."""
         groups = self.env.obs_groups(self.env_params)
         if self.config.model.group_likelihood == "gaussian":
             groups = tuple(dataclasses.replace(g, likelihood="gaussian") for g in groups)
+        if self.config.model.decoder_weighting == "sum" and all(
+                g.likelihood == self.env.obs_likelihood for g in groups):
+            return None
         return groups
 
     @property
