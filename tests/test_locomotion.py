@@ -182,12 +182,13 @@ def test_ant_goal_distribution_and_cue_noise():
 
 def test_ant_bearing_features_are_continuous_across_the_wrap():
     """The torso straddling the line behind its goal (true bearing ±π, alternating sides): the imitator's (cos, sin)
-    of the noisy bearing moves by about the noise from one step to the next, where the raw angle jumps by about 2π."""
+    of the noisy bearing moves by about the noise from one step to the next, where the raw angle jumps by about 2π.
+    At the reference code's cue noise 0.1, where a step's change is small enough to tell from a wrap."""
     y = jnp.where(jnp.arange(4000) % 2 == 0, 0.01, -0.01)
     goal = jnp.array([5.0, 0.0])
     keys = jax.random.split(jax.random.key(5), 4000)
     for raw in (False, True):
-        env, params = make("ant_goal", raw_bearing=raw)
+        env, params = make("ant_goal", raw_bearing=raw, cue_noise=0.1)
 
         def features(key, y_torso, env=env, params=params):
             state = _body_at(10.0, y_torso)
