@@ -6,6 +6,7 @@ import pathlib
 from typing import Any
 
 import jax
+import numpy as np
 import orbax.checkpoint as ocp
 
 from jaxdeconf.config import ConfigError
@@ -21,6 +22,18 @@ def _from_raw(state: Any) -> Any:
     return state.replace(key=jax.random.wrap_key_data(state.key))
 
 
+def _leading(metadata: Any) -> int:
+    """The seed count of a checkpoint, from its metadata (every array's leading axis)."""
+    tree = getattr(metadata, "tree", metadata)
+    return int(jax.tree.leaves(tree, is_leaf=lambda x: hasattr(x, "shape"))[0].shape[0])
+
+
+def _place_like(host: np.ndarray, like: jax.Array) -> jax.Array:
+    """``host``'s first seeds (repeated cyclically where ``like`` has more) with the shape and placement of ``like``."""
+    host = host[np.arange(like.shape[0]) % host.shape[0]]
+    return jax.make_array_from_callback(host.shape, like.sharding, lambda index: host[index])
+
+
 class Checkpoints:
     """Keeps the last two checkpoints of one algorithm's run under ``directory``, step = iterations done."""
 
@@ -29,7 +42,8 @@ class Checkpoints:
         self.directory = pathlib.Path(directory).absolute()
         # A kill during a save leaves orbax's temporary folder behind (never a half checkpoint): delete it on start.
         options = ocp.CheckpointManagerOptions(max_to_keep=2, create=True, cleanup_tmp_directories=True)
-        self.manager = ocp.CheckpointManager(self.directory, options=options)
+        self.manager = ocp.CheckpointManager(self.directory, options=options,
+                                             item_handlers=ocp.StandardCheckpointHandler())
 
     def latest_step(self) -> int | None:
         """Iterations done in the newest checkpoint, or None."""
@@ -45,17 +59,26 @@ class Checkpoints:
         self.manager.wait_until_finished()
 
     def restore(self, step: int, like: Any) -> Any:
-        """Read the checkpoint of ``step`` into the structure of ``like``; a one-line ConfigError if unreadable."""
-        abstract = jax.tree.map(ocp.utils.to_shape_dtype_struct, _to_raw(like))
+        """Read the checkpoint of ``step`` into the structure, seed count and placement of ``like``; a one-line
+        ConfigError if unreadable.
+
+        A checkpoint holds the seeds its run trained, padding seeds included (``jaxdeconf.sharding``), so it may hold
+        more seeds than ``like`` (the first ones are read) or fewer (the padding seeds missing repeat saved ones:
+        their results are dropped anyway). So a run resumes on another number of devices, and a trained policy loads
+        on one device.
+        """
+        raw_like = _to_raw(like)
         try:
-            raw = self.manager.restore(step, args=ocp.args.StandardRestore(abstract))
+            saved = _leading(self.manager.item_metadata(step))
+            target = jax.tree.map(lambda x: np.zeros((saved, *x.shape[1:]), x.dtype), raw_like)
+            host = self.manager.restore(step, args=ocp.args.StandardRestore(target))
         except Exception as err:  # Orbax raises many types for damaged files; all mean the same to the user.
             reason = str(err).strip().splitlines()[0][:160] if str(err).strip() else type(err).__name__
             raise ConfigError(
                 f"checkpoint {self.directory / str(step)} is unreadable ({reason}); it was left untouched: "
                 "move it away to restart from the previous one, or pass --overwrite to retrain from scratch"
             ) from None
-        return _from_raw(raw)
+        return _from_raw(jax.tree.map(_place_like, host, raw_like))
 
     def close(self) -> None:
         """Release the manager's threads."""

@@ -53,8 +53,15 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--overwrite", action="store_true", help="delete an existing results folder and start over")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--jobs", type=int, default=0,
-                   help="algorithms trained at once, each in its own process pinned to its own CPU core "
+                   help="algorithms trained at once, each in its own process "
                         "(default: one per algorithm, at most one per available core)")
+    p.add_argument("--host-devices", type=int, default=1,
+                   help="split this machine's CPU into N devices and the seeds over them (default: 1)")
+    p.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                   help="multi-host run: process 0's address (or $JAX_COORDINATOR_ADDRESS); seeds are split over "
+                        "every process's devices and process 0 writes the results")
+    p.add_argument("--num-processes", type=int, default=None, help="multi-host run: processes in all")
+    p.add_argument("--process-id", type=int, default=None, help="multi-host run: this process's rank")
     p.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # Internal: train one algorithm of --out.
     p.add_argument("--core", type=int, default=None, help=argparse.SUPPRESS)  # Internal: the worker's core.
     p.add_argument("--position", type=int, default=0, help=argparse.SUPPRESS)  # Internal: its progress-bar row.
@@ -191,13 +198,16 @@ def main(argv: list[str] | None = None) -> int:
         args = parse_args(argv)
         if args.worker is not None:
             return _worker(args)
-        # The exact references and the memory check run JAX here, in this process: on one core, like every worker.
-        pin_to_core(available_cores()[0])
+        from jaxdeconf import platform
+
+        set_up = platform.distributed_args(args.coordinator, args.num_processes, args.process_id)
+        if set_up is not None:
+            return _distributed(args, set_up)
         with _signals_raise():
             config, folder = _setup(args)
             lock = prepare_folder(folder, config, args.overwrite)
             try:
-                return _run(config, folder, quiet=args.quiet, jobs=args.jobs)
+                return _run(config, folder, quiet=args.quiet, jobs=args.jobs, host_devices=args.host_devices)
             finally:
                 lock.release()
     except ConfigError as err:
@@ -213,6 +223,8 @@ def _setup(args: argparse.Namespace) -> tuple[cfg.Config, pathlib.Path]:
     """Validate every input (flags, config, env parameters, memory) before anything is written or compiled."""
     if args.jobs < 0:
         raise ConfigError(f"--jobs={args.jobs} is not allowed: need 0 (automatic) or a positive integer")
+    if args.host_devices < 1:
+        raise ConfigError(f"--host-devices={args.host_devices} is not allowed: need a positive integer")
     if args.out is not None and not args.out.strip():
         raise ConfigError("--out is empty; give a folder, or leave --out out for results/<env>-<preset>")
     algos = cfg.ALGOS if args.algo.strip() == "all" else tuple(a.strip() for a in args.algo.split(",") if a.strip())
@@ -275,6 +287,9 @@ def _worker(args: argparse.Namespace) -> int:
     _die_with_parent()
     if args.core is not None:
         pin_to_core(args.core)
+    from jaxdeconf.platform import set_host_devices
+
+    set_host_devices(args.host_devices)
     import logging
 
     from jaxdeconf.train import train_algorithm
@@ -313,14 +328,15 @@ def _die_with_parent() -> None:
         sys.exit(128 + signal.SIGTERM)
 
 
-def _train_workers(folder: pathlib.Path, queue: list[str], cores: list[int], jobs: int, quiet: bool) -> dict[str, int]:
+def _train_workers(folder: pathlib.Path, queue: list[str], cores: list[int], jobs: int, quiet: bool,
+                   host_devices: int) -> dict[str, int]:
     """Train the queued algorithms in worker processes, ``jobs`` at a time, each pinned to its slot's core; a freed
     slot takes the next algorithm at once. Returns each algorithm's exit code."""
     codes: dict[str, int] = {}
     running: dict[int, tuple[str, subprocess.Popen]] = {}  # Slot (a core and a progress-bar row) -> worker.
     queue = list(queue)
     try:
-        _schedule(folder, queue, cores, jobs, quiet, running, codes)
+        _schedule(folder, queue, cores, jobs, quiet, host_devices, running, codes)
     finally:  # Normally nothing is left; on SIGTERM or Ctrl-C, the workers stop with the run.
         _stop(proc for _, proc in running.values())
     return codes
@@ -340,7 +356,7 @@ def _stop(procs: Iterable[subprocess.Popen], grace_s: float = 20.0) -> None:
             p.wait()
 
 
-def _schedule(folder: pathlib.Path, queue: list[str], cores: list[int], jobs: int, quiet: bool,
+def _schedule(folder: pathlib.Path, queue: list[str], cores: list[int], jobs: int, quiet: bool, host_devices: int,
               running: dict[int, tuple[str, subprocess.Popen]], codes: dict[str, int]) -> None:
     """Start a worker in each free slot until the queue is empty, collecting exit codes."""
     while queue or running:
@@ -348,7 +364,8 @@ def _schedule(folder: pathlib.Path, queue: list[str], cores: list[int], jobs: in
             if slot not in running and queue:
                 algo = queue.pop(0)
                 cmd = [sys.executable, "-m", "jaxdeconf.run", "--worker", algo, "--out", str(folder),
-                       "--core", str(cores[slot % len(cores)]), "--position", str(slot)]
+                       "--core", str(cores[slot % len(cores)]), "--position", str(slot),
+                       "--host-devices", str(host_devices)]
                 running[slot] = (algo, subprocess.Popen([*cmd, "--quiet"] if quiet else cmd))
         finished = [slot for slot, (_, proc) in running.items() if proc.poll() is not None]
         if not finished:
@@ -358,16 +375,14 @@ def _schedule(folder: pathlib.Path, queue: list[str], cores: list[int], jobs: in
             codes[algo] = proc.returncode
 
 
-def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0) -> int:
-    """Train every algorithm not yet finished (side by side, one core each), then write references, summary and
+def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0, host_devices: int = 1) -> int:
+    """Train every algorithm not yet finished (side by side, a process each), then write references, summary and
     figures."""
-    from jaxdeconf import results
-
     cores = available_cores()
     _check_writable(folder, config.algos)
     queue = [algo for algo in config.algos if not _finished(config, folder, algo)]  # Damaged files: before any work.
     refs = _references(config, folder)
-    codes = _train_workers(folder, queue, cores, jobs or len(cores), quiet)
+    codes = _train_workers(folder, queue, cores, jobs or len(cores), quiet, host_devices)
     if 2 in codes.values():
         return 2  # A worker already printed its one-line error.
     failed = [f"{algo} (exit {code})" for algo, code in codes.items() if code != 0]
@@ -375,12 +390,50 @@ def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0) -
         print(f"error: training failed for {', '.join(failed)}; its checkpoints are kept, so running the same "
               "command again resumes it", file=sys.stderr)
         return 1
+    _report(config, folder, refs)
+    return 0
+
+
+def _report(config: cfg.Config, folder: pathlib.Path, refs: dict[str, Any] | None) -> None:
+    """Summary table and figures of a trained folder."""
+    from jaxdeconf import results
+
     with writable(folder):
         table = results.summarize(folder, config, refs)
         print(results.write_summary(folder, table, refs))
         for path in results.plot(folder, config, refs):
             print(f"wrote {path}")
-    return 0
+
+
+def _distributed(args: argparse.Namespace, set_up: dict[str, Any]) -> int:
+    """A run over several processes (hosts): every process joins, validates the same flags and trains every
+    algorithm in turn on its devices' share of the seeds; process 0 alone prints and writes the results (the
+    results folder must be on a file system all hosts share)."""
+    from jaxdeconf.platform import join, set_host_devices
+
+    set_host_devices(args.host_devices)  # Before anything starts JAX's backend (importing train does).
+    join(set_up)
+    from jaxdeconf.sharding import is_primary, sync
+    from jaxdeconf.train import train_algorithm
+
+    if not is_primary():  # One process prints (errors still reach stderr), the C++ libraries' lines too.
+        sys.stdout.flush()
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    with _signals_raise():
+        config, folder = _setup(args)
+        lock = prepare_folder(folder, config, args.overwrite) if is_primary() else None
+        try:
+            sync("prepared")
+            refs = _references(config, folder) if is_primary() else None
+            for algo in config.algos:
+                if not _finished(config, folder, algo):
+                    train_algorithm(config, algo, folder / algo, progress=not args.quiet)
+            if is_primary():
+                _report(config, folder, refs)
+            return 0
+        finally:
+            if lock is not None:
+                lock.release()
 
 
 def _finished(config: cfg.Config, folder: pathlib.Path, algo: str) -> bool:

@@ -22,14 +22,16 @@ from jaxdeconf.checkpoint import Checkpoints
 from jaxdeconf.config import Config, ConfigError
 from jaxdeconf.envs import make
 from jaxdeconf.files import append_lines, dumps_row, parse_row, remove_temporaries, write_atomic
+from jaxdeconf.sharding import SeedLayout, is_primary, seed_layout, sync
 
 CURVES = ("p_best_online", "p_best_expert")  # Every run's curves.npz holds these; any other array output also goes
 # there (the diagnostics: per-step θ probes, per-episode θ, returns and extras).
 
 
-def seed_keys(config: Config) -> jax.Array:
-    """One typed key per seed; seed i is ``jax.random.key(seed_start + i)`` for every algorithm."""
-    return jax.vmap(jax.random.key)(jnp.arange(config.seed_start, config.seed_start + config.seeds))
+def seed_keys(config: Config, count: int | None = None) -> jax.Array:
+    """One typed key per seed; seed i is ``jax.random.key(seed_start + i)`` for every algorithm. ``count`` (default
+    ``config.seeds``) may ask for padding seeds past the config's."""
+    return jax.vmap(jax.random.key)(jnp.arange(config.seed_start, config.seed_start + (count or config.seeds)))
 
 
 def build_algorithm(config: Config, name: str) -> Algorithm:
@@ -38,9 +40,30 @@ def build_algorithm(config: Config, name: str) -> Algorithm:
     return make_algorithm(name, env, env_params, config)
 
 
-def compiled_chunk(algo: Algorithm, length: int) -> Any:
-    """``jit(vmap(train_chunk))`` for chunks of ``length`` iterations."""
-    return jax.jit(jax.vmap(functools.partial(algo.train_chunk, length=length)))
+def over_seeds(fn: Any, config: Config, layout: SeedLayout | None = None) -> Any:
+    """``fn`` of one seed as the jitted program of every seed: each device runs its own seeds, ``train.seed_batch``
+    at a time (``shard_map`` over the layout's mesh; no communication between devices)."""
+    batch = config.train.seed_batch
+
+    def per_device(xs: Any) -> Any:
+        return jax.vmap(fn)(xs) if batch == 0 else jax.lax.map(fn, xs, batch_size=batch)
+
+    if layout is None:
+        return jax.jit(per_device)
+    spec = layout.sharding.spec
+    # No collectives inside, so the varying-axis check (which scans with constant initial carries trip) is off.
+    return jax.jit(jax.shard_map(per_device, mesh=layout.mesh, in_specs=spec, out_specs=spec, check_vma=False))
+
+
+def compiled_chunk(algo: Algorithm, length: int, layout: SeedLayout | None = None) -> Any:
+    """The program of a chunk of ``length`` iterations for every seed (``over_seeds``)."""
+    return over_seeds(functools.partial(algo.train_chunk, length=length), algo.config, layout)
+
+
+def initial_states(algo: Algorithm, config: Config, layout: SeedLayout) -> TrainState:
+    """Every seed's fresh state (padding seeds included), placed on the layout's devices."""
+    keys = layout.place(np.asarray(jax.random.key_data(seed_keys(config, layout.padded))))  # Raw: any process count.
+    return over_seeds(lambda k: algo.init(jax.random.wrap_key_data(k)), config, layout)(keys)
 
 
 def chunk_rows(name: str, config: Config, start: int, per_iter: dict, evals: dict) -> list[dict[str, Any]]:
@@ -129,6 +152,7 @@ class _Loop:
 
     algo: Algorithm
     config: Config
+    layout: SeedLayout
     full: Any = None  # The compiled full-length chunk.
     compile_s: float = 0.0
     run_s: float = 0.0
@@ -136,20 +160,21 @@ class _Loop:
     def compile(self, states: TrainState) -> None:
         """Compile the full-length chunk (only a shorter last chunk compiles again)."""
         t0 = time.perf_counter()
-        self.full = compiled_chunk(self.algo, min(self.config.train.chunk, self.config.train.iterations)).lower(
-            states).compile()
+        length = min(self.config.train.chunk, self.config.train.iterations)
+        self.full = compiled_chunk(self.algo, length, self.layout).lower(states).compile()
         self.compile_s = time.perf_counter() - t0
 
     def chunk(self, states: TrainState, done: int) -> tuple[TrainState, int, dict, dict]:
-        """Run the chunk that starts after ``done`` iterations: (states, its length, per-iteration and eval outputs)."""
+        """Run the chunk that starts after ``done`` iterations: (states, its length, and the real seeds'
+        per-iteration and eval outputs as NumPy arrays)."""
         t = self.config.train
         length = min(t.chunk, t.iterations - done)
-        fn = self.full if length == min(t.chunk, t.iterations) else compiled_chunk(self.algo, length)
+        fn = self.full if length == min(t.chunk, t.iterations) else compiled_chunk(self.algo, length, self.layout)
         t1 = time.perf_counter()
         states, per_iter, evals = fn(states)
         jax.block_until_ready(states)
         self.run_s += time.perf_counter() - t1
-        return states, length, per_iter, evals
+        return states, length, self.layout.to_host(per_iter), self.layout.to_host(evals)
 
 
 def _save_curves(folder: pathlib.Path, evals: dict) -> None:
@@ -169,7 +194,8 @@ def _recompute_curves(loop: _Loop, ckpt: Checkpoints, init: TrainState, folder: 
                           f"needed to recompute it is gone; delete {folder} to retrain, or pass --overwrite")
     states = ckpt.restore(last, init) if last else init
     _, _, _, evals = loop.chunk(states, last)
-    _save_curves(folder, jax.tree.map(np.asarray, evals))
+    if is_primary():
+        _save_curves(folder, evals)
 
 
 def train_algorithm(
@@ -181,26 +207,33 @@ def train_algorithm(
     rows, then saves a checkpoint; the last chunk writes ``curves.npz`` before its checkpoint, and ``DONE`` comes
     last, so a kill at any moment leaves a folder the next start resumes to the same results.
     """
-    folder.mkdir(parents=True, exist_ok=True)
-    remove_temporaries(folder)
-    algo = build_algorithm(config, name)
+    primary = is_primary()
+    if primary:
+        folder.mkdir(parents=True, exist_ok=True)
+        remove_temporaries(folder)
+    sync(f"{folder}: ready")
+    algo, layout = build_algorithm(config, name), seed_layout(config.seeds)
     ckpt = Checkpoints(folder / "checkpoints")
     try:
-        init = jax.jit(jax.vmap(algo.init))(seed_keys(config))
+        init = initial_states(algo, config, layout)
         done = ckpt.latest_step() or 0
         states = ckpt.restore(done, init) if done else init
-        resume_metrics(folder / "metrics.jsonl", config, name, done)
-        loop = _Loop(algo, config)
+        if primary:
+            resume_metrics(folder / "metrics.jsonl", config, name, done)
+        loop = _Loop(algo, config, layout)
         finished = done == config.train.iterations and curves_ok(folder / "curves.npz")
         if not finished:  # A run killed between its last checkpoint and DONE has nothing left to compile.
             loop.compile(states)
-            _train_loop(loop, ckpt, states, done, name, folder, progress, position)
+            _train_loop(loop, ckpt, states, done, name, folder, progress and primary, position)
+            sync(f"{folder}: trained")
             if not curves_ok(folder / "curves.npz"):
                 _recompute_curves(loop, ckpt, init, folder)
     finally:
         ckpt.close()
     timing = {"compile_s": loop.compile_s, "run_s": loop.run_s}
-    write_atomic(folder / "DONE", json.dumps(timing) + "\n")
+    if primary:
+        write_atomic(folder / "DONE", json.dumps(timing) + "\n")
+    sync(f"{folder}: done")
     return timing
 
 
@@ -214,13 +247,14 @@ def _train_loop(loop: _Loop, ckpt: Checkpoints, states: TrainState, done: int, n
         bar.write(f"[{name}] compiled one {t.chunk}-iteration chunk for {config.seeds} seeds in {loop.compile_s:.1f} s")
     while done < t.iterations:
         states, length, per_iter, evals = loop.chunk(states, done)
-        per_iter, evals = jax.tree.map(np.asarray, per_iter), jax.tree.map(np.asarray, evals)
         check_finite(name, config, done, per_iter, evals)
         rows = chunk_rows(name, config, done, per_iter, evals)
-        append_lines(folder / "metrics.jsonl", [dumps_row(r) for r in rows])
         done += length
-        if done == t.iterations:
-            _save_curves(folder, evals)  # Before the final checkpoint: a run with that checkpoint has its curves.
+        if is_primary():  # The one process that writes results; every process saves its shards of the checkpoint.
+            append_lines(folder / "metrics.jsonl", [dumps_row(r) for r in rows])
+            if done == t.iterations:
+                _save_curves(folder, evals)  # Before the final checkpoint: a run with that checkpoint has its curves.
+        sync(f"{folder}: chunk {done}")
         ckpt.save(done, states)
         if progress:
             bar.update(length)

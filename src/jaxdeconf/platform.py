@@ -1,0 +1,59 @@
+"""Process set-up of the command-line tools, done before JAX starts its backend: how many devices this machine's CPU
+shows, and joining a run spread over several processes or hosts. A library user's process is left as JAX sets it up.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import jax
+
+from jaxdeconf.config import ConfigError
+
+# The usual variables of a multi-host launch, read when the flags leave them out (SLURM's are detected by JAX itself).
+COORDINATOR_ENV, PROCESSES_ENV, PROCESS_ID_ENV = "JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"
+
+
+def set_host_devices(count: int) -> None:
+    """Show this machine's CPU as ``count`` devices, so the seed axis can be split over them (each device runs on its
+    own thread). Only the CPU backend is affected; a GPU's devices are what they are."""
+    if count < 1:
+        raise ConfigError(f"--host-devices={count} is not allowed: need a positive integer")
+    jax.config.update("jax_num_cpu_devices", count)
+
+
+def distributed_args(coordinator: str | None, processes: int | None, process_id: int | None) -> dict[str, Any] | None:
+    """``jax.distributed.initialize``'s arguments from the flags, else the environment; None for a one-process run."""
+    coordinator = coordinator or os.environ.get(COORDINATOR_ENV)
+    if not coordinator:
+        return None
+    processes = processes if processes is not None else _env_int(PROCESSES_ENV)
+    process_id = process_id if process_id is not None else _env_int(PROCESS_ID_ENV)
+    host, sep, port = coordinator.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ConfigError(f"--coordinator {coordinator!r} is not allowed: need HOST:PORT, e.g. node001:12355")
+    if processes is not None and processes < 1:
+        raise ConfigError(f"--num-processes={processes} is not allowed: need a positive integer")
+    if process_id is not None and not 0 <= process_id < (processes or 1 << 30):
+        raise ConfigError(f"--process-id={process_id} is not allowed: need 0 .. {processes - 1} "
+                          f"(--num-processes={processes})")
+    return {"coordinator_address": coordinator, "num_processes": processes, "process_id": process_id}
+
+
+def _env_int(name: str) -> int | None:
+    """An integer environment variable, or None when unset."""
+    value = os.environ.get(name)
+    if value is None:
+        return None
+    try:
+        return int(value)
+    except ValueError:
+        raise ConfigError(f"{name}={value!r} is not allowed: need an integer") from None
+
+
+def join(args: dict[str, Any], timeout_s: int = 300) -> None:
+    """Join the run's other processes (CPU collectives over gloo, so CPU hosts work too); every process blocks here
+    until all have joined, or fails after ``timeout_s``."""
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(**args, initialization_timeout=timeout_s)
