@@ -3,8 +3,10 @@ default's wall time, compile time and peak memory; LunarLander env steps per sec
 Brax envs' steps per second and the confounding layer's overhead. Prints a table; numbers are measured on the machine
 it runs on.
 
-Also seconds per iteration of every algorithm at each env's CPU preset (section ``algos``). Sections can be chosen:
-``make bench SECTIONS="reference seeds e2e algos lunar brax"`` (the default is all six).
+Also seconds per iteration versus seeds on one device and over 2 host devices, and the GRU's achieved GFLOP/s against
+a plain matmul's (``bench_scale.py``), and seconds per iteration of every algorithm at each env's CPU preset (section
+``algos``). Sections can be chosen: ``make bench SECTIONS="seeds e2e efficiency reference algos lunar brax"`` (the
+default is all seven).
 """
 
 from __future__ import annotations
@@ -15,9 +17,9 @@ import sys
 import tempfile
 import time
 
+import bench_scale
 import jax
 
-import jaxdeconf  # noqa: F401  (XLA CPU flags)
 from jaxdeconf.config import ALGOS, build
 from jaxdeconf.run import available_cores, pin_to_core
 from jaxdeconf.train import build_algorithm, compiled_chunk, seed_keys
@@ -45,9 +47,11 @@ def time_iterations(
 def main(sections: list[str]) -> None:
     """Run the named measurements (default: all) and print the table."""
     cores = available_cores()
+    if "seeds" in sections:  # Subprocesses, before this process pins itself: a 2-device process gets both cores.
+        bench_scale.seeds_and_devices(__file__)
     if "e2e" in sections:
         print("\n## CPU default end to end: python -m jaxdeconf.run --env bandit --algo bc,dil --seeds 10")
-        print(f"##  (bc and dil side by side, one core each of the {len(cores)} available; runs first, before this")
+        print(f"##  (bc and dil side by side, a process each, on the {len(cores)} cores available; runs before this")
         print("##  process starts JAX and pins itself to one core, so the CLI gets every core)")
         with tempfile.TemporaryDirectory() as out:
             t0 = time.perf_counter()
@@ -62,7 +66,7 @@ def main(sections: list[str]) -> None:
                 if "compile" in line and "run" in line:
                     print("  " + line)
 
-    pin_to_core(cores[0])  # As every training process does (see jaxdeconf.run.pin_to_core).
+    pin_to_core(cores[0])  # The in-process sections measure one core.
     print(f"\njax {jax.__version__} on {jax.devices()[0].platform}; {len(cores)} cores available, "
           "in-process timings on one core")
 
@@ -74,14 +78,8 @@ def main(sections: list[str]) -> None:
             print(f"{name:4s}: {s:7.2f} s/iteration (compile {c:.1f} s); PyTorch reference "
                   f"{TORCH_S_PER_ITER[name]:.0f} s on 2 cores -> {TORCH_S_PER_ITER[name] / s:.1f}x faster per seed")
 
-    if "seeds" in sections:
-        print("\n## CPU preset: seconds per iteration versus number of seeds (one compiled program)")
-        for name in ("dil", "bc"):
-            for seeds in (1, 4, 16):
-                c, s = time_iterations(name, "cpu", seeds, 5, {})
-                print(f"{name:4s} seeds={seeds:2d}: {s:6.3f} s/iteration, {s / seeds:6.3f} s per seed-iteration "
-                      f"(compile {c:.1f} s)")
-
+    if "efficiency" in sections:
+        bench_scale.efficiency()
 
     if "algos" in sections:
         print("\n## Every algorithm at each env's CPU preset: seconds per iteration (after warm-up), 1 seed")
@@ -210,11 +208,14 @@ def _brax_one(name: str, n: int) -> None:
           f"{100 * (rates['raw'] / rates['ours'] - 1):+.1f}%", flush=True)
 
 
-SECTIONS = ("reference", "seeds", "e2e", "algos", "lunar", "brax")
+SECTIONS = ("seeds", "e2e", "efficiency", "reference", "algos", "lunar", "brax")
 
 if __name__ == "__main__":
     if sys.argv[1:2] == ["_brax_one"]:
         _brax_one(sys.argv[2], int(sys.argv[3]))
+        sys.exit(0)
+    if sys.argv[1:2] == ["_devices_one"]:
+        bench_scale.devices_one(int(sys.argv[2]))
         sys.exit(0)
     chosen = sys.argv[1:] or list(SECTIONS)
     unknown = [name for name in chosen if name not in SECTIONS]

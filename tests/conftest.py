@@ -7,16 +7,15 @@ import pathlib
 import numpy as np
 import pytest
 
-import jaxdeconf  # noqa: F401  (sets the XLA CPU flag before any computation)
 from jaxdeconf.config import build
 from jaxdeconf.run import available_cores, pin_to_core
 
 
 def pytest_configure(config):
-    """Like every training process, each test process runs on one core (see jaxdeconf.run.pin_to_core). Under
-    pytest-xdist (``-n 2`` in pyproject.toml) worker gwN takes core N and the controller, which only distributes
-    tests, stays unpinned, so the workers it starts inherit every core and never share one. The CLI tests'
-    training subprocesses still spread over the available cores (each pins itself)."""
+    """Each test process runs on one core, so two test processes never compete for a core. Under pytest-xdist
+    (``-n 2`` in pyproject.toml) worker gwN takes core N and the controller, which only distributes tests, stays
+    unpinned, so the workers it starts inherit every core. The CLI tests' training subprocesses inherit their test
+    process's core."""
     cores = available_cores()
     if hasattr(config, "workerinput"):
         pin_to_core(cores[int(config.workerinput["workerid"].removeprefix("gw")) % len(cores)])

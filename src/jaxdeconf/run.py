@@ -63,7 +63,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--num-processes", type=int, default=None, help="multi-host run: processes in all")
     p.add_argument("--process-id", type=int, default=None, help="multi-host run: this process's rank")
     p.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # Internal: train one algorithm of --out.
-    p.add_argument("--core", type=int, default=None, help=argparse.SUPPRESS)  # Internal: the worker's core.
     p.add_argument("--position", type=int, default=0, help=argparse.SUPPRESS)  # Internal: its progress-bar row.
     return p.parse_args(argv)
 
@@ -262,13 +261,8 @@ def _signals_raise() -> Iterator[None]:
 
 
 def pin_to_core(core: int) -> None:
-    """Run this process on one CPU core (Linux; elsewhere a no-op). Must happen before JAX starts its backend.
-
-    XLA's CPU runtime (jaxlib 0.10.2) deadlocked here, intermittently, running the seed-vmapped programs with its
-    threads spread over both cores of a 2-core machine; every run pinned to one core finished. The programs are
-    small-matrix and sequential (scans over time), so one core per algorithm loses little, and the CLI uses the
-    other cores by training the algorithms side by side.
-    """
+    """Run this process on one CPU core (Linux; elsewhere a no-op), before JAX starts its backend: for measurements
+    of one core's speed, and test processes that share a machine. Training processes are not pinned."""
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {core})
 
@@ -285,8 +279,6 @@ def available_cores() -> list[int]:
 def _worker(args: argparse.Namespace) -> int:
     """Internal entry point: train one algorithm of an already prepared results folder."""
     _die_with_parent()
-    if args.core is not None:
-        pin_to_core(args.core)
     from jaxdeconf.platform import set_host_devices
 
     set_host_devices(args.host_devices)
@@ -328,15 +320,15 @@ def _die_with_parent() -> None:
         sys.exit(128 + signal.SIGTERM)
 
 
-def _train_workers(folder: pathlib.Path, queue: list[str], cores: list[int], jobs: int, quiet: bool,
+def _train_workers(folder: pathlib.Path, queue: list[str], jobs: int, quiet: bool,
                    host_devices: int) -> dict[str, int]:
-    """Train the queued algorithms in worker processes, ``jobs`` at a time, each pinned to its slot's core; a freed
-    slot takes the next algorithm at once. Returns each algorithm's exit code."""
+    """Train the queued algorithms in worker processes, ``jobs`` at a time; a freed slot takes the next algorithm at
+    once. Returns each algorithm's exit code."""
     codes: dict[str, int] = {}
-    running: dict[int, tuple[str, subprocess.Popen]] = {}  # Slot (a core and a progress-bar row) -> worker.
+    running: dict[int, tuple[str, subprocess.Popen]] = {}  # Slot (a progress-bar row) -> worker.
     queue = list(queue)
     try:
-        _schedule(folder, queue, cores, jobs, quiet, host_devices, running, codes)
+        _schedule(folder, queue, jobs, quiet, host_devices, running, codes)
     finally:  # Normally nothing is left; on SIGTERM or Ctrl-C, the workers stop with the run.
         _stop(proc for _, proc in running.values())
     return codes
@@ -356,7 +348,7 @@ def _stop(procs: Iterable[subprocess.Popen], grace_s: float = 20.0) -> None:
             p.wait()
 
 
-def _schedule(folder: pathlib.Path, queue: list[str], cores: list[int], jobs: int, quiet: bool, host_devices: int,
+def _schedule(folder: pathlib.Path, queue: list[str], jobs: int, quiet: bool, host_devices: int,
               running: dict[int, tuple[str, subprocess.Popen]], codes: dict[str, int]) -> None:
     """Start a worker in each free slot until the queue is empty, collecting exit codes."""
     while queue or running:
@@ -364,8 +356,7 @@ def _schedule(folder: pathlib.Path, queue: list[str], cores: list[int], jobs: in
             if slot not in running and queue:
                 algo = queue.pop(0)
                 cmd = [sys.executable, "-m", "jaxdeconf.run", "--worker", algo, "--out", str(folder),
-                       "--core", str(cores[slot % len(cores)]), "--position", str(slot),
-                       "--host-devices", str(host_devices)]
+                       "--position", str(slot), "--host-devices", str(host_devices)]
                 running[slot] = (algo, subprocess.Popen([*cmd, "--quiet"] if quiet else cmd))
         finished = [slot for slot, (_, proc) in running.items() if proc.poll() is not None]
         if not finished:
@@ -378,11 +369,10 @@ def _schedule(folder: pathlib.Path, queue: list[str], cores: list[int], jobs: in
 def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0, host_devices: int = 1) -> int:
     """Train every algorithm not yet finished (side by side, a process each), then write references, summary and
     figures."""
-    cores = available_cores()
     _check_writable(folder, config.algos)
     queue = [algo for algo in config.algos if not _finished(config, folder, algo)]  # Damaged files: before any work.
     refs = _references(config, folder)
-    codes = _train_workers(folder, queue, cores, jobs or len(cores), quiet, host_devices)
+    codes = _train_workers(folder, queue, jobs or len(available_cores()), quiet, host_devices)
     if 2 in codes.values():
         return 2  # A worker already printed its one-line error.
     failed = [f"{algo} (exit {code})" for algo, code in codes.items() if code != 0]

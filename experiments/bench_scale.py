@@ -1,0 +1,92 @@
+"""``make bench`` sections on scale: seconds per iteration versus seeds, on one device and with the seed axis split
+over host devices (section ``seeds``), and per-core efficiency of the GRU steps against a plain matmul measured in
+the same process (section ``efficiency``). Each device count runs in its own process (a process's CPU device count is
+fixed when JAX starts), unpinned, so a 2-device process may use both cores.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+SEEDS = (1, 2, 4, 8)
+ITERS = 3
+
+
+def seeds_and_devices(script: str) -> None:
+    """Print s/iteration of dil at the bandit CPU preset for 1, 2, 4, 8 seeds on 1 device and on 2 host devices."""
+    print(f"\n## bandit CPU preset, dil: seconds per iteration ({ITERS}-iteration chunk, after its compile) versus")
+    print("##  seeds; one device, and the seed axis split over 2 host devices (--host-devices 2); a process, unpinned")
+    for devices in (1, 2):
+        proc = subprocess.run([sys.executable, script, "_devices_one", str(devices)], capture_output=True, text=True,
+                              timeout=1800, check=False)
+        rows = [line for line in proc.stdout.splitlines() if line.startswith("devices=")]
+        print("\n".join(rows) if rows else f"devices={devices}: failed (exit {proc.returncode}) "
+              f"{proc.stderr.strip().splitlines()[-1:]}", flush=True)
+
+
+def devices_one(devices: int) -> None:
+    """One process of ``seeds_and_devices``: its rows, and at 8 seeds on one device vmap against one seed at a time."""
+    import jax
+
+    jax.config.update("jax_num_cpu_devices", devices)
+    from jaxdeconf.config import build
+    from jaxdeconf.sharding import seed_layout
+    from jaxdeconf.train import build_algorithm, compiled_chunk, initial_states
+
+    batches = (1, 0) if devices == 1 else (1,)
+    for seeds in SEEDS:
+        for batch in batches if seeds == SEEDS[-1] else (1,):
+            config = build("bandit", "cpu", ("dil",), seeds, {"train.warmup": "0", "train.seed_batch": str(batch)})
+            algo, layout = build_algorithm(config, "dil"), seed_layout(seeds)
+            states = initial_states(algo, config, layout)
+            t0 = time.perf_counter()
+            program = compiled_chunk(algo, ITERS, layout).lower(states).compile()
+            compile_s = time.perf_counter() - t0
+            jax.block_until_ready(program(states))  # Warm.
+            t0 = time.perf_counter()
+            jax.block_until_ready(program(states))
+            s = (time.perf_counter() - t0) / ITERS
+            how = "one seed at a time" if batch == 1 else "all seeds vmapped"
+            print(f"devices={devices} seeds={seeds}: {s:6.3f} s/iteration, {s / seeds:6.3f} s per seed ({how}; "
+                  f"{layout.padded} trained; compile {compile_s:.1f} s)", flush=True)
+
+
+def efficiency() -> None:
+    """Achieved GFLOP/s of the GRU's steps (a scan over 100 steps, batch 32, the CPU preset's sizes, forward and
+    backward) against a plain 1024^3 matmul's, in this process on one core."""
+    import flax.linen as nn
+    import jax
+    import jax.numpy as jnp
+
+    print("\n## Per-core efficiency: GRU steps (hidden 64, input 64, batch 32, 100 steps) against a plain matmul")
+    steps, batch, size = 100, 32, 64
+    cell = nn.GRUCell(size)
+    x = jax.random.normal(jax.random.key(0), (steps, batch, size))
+    params = cell.init(jax.random.key(1), jnp.zeros((batch, size)), x[0])
+
+    def forward(p: object, x: jax.Array) -> jax.Array:
+        return jax.lax.scan(lambda c, xt: cell.apply(p, c, xt), jnp.zeros((batch, size)), x)[1]
+
+    step_flops = 2 * batch * 6 * size * size  # Six [batch, 64] x [64, 64] products per step (3 gates, x and h).
+    backward = jax.jit(jax.grad(lambda p, x: jnp.sum(forward(p, x) ** 2)))
+    rows = {"GRU forward": (jax.jit(forward), step_flops * steps),
+            "GRU forward + backward": (backward, 3 * step_flops * steps)}
+    for label, (fn, flops) in rows.items():
+        print(f"{label:24s}: {flops / _best(fn, params, x) / 1e9:6.1f} GFLOP/s (matmul FLOPs only)")
+    a = jax.random.normal(jax.random.key(2), (1024, 1024))
+    print(f"{'matmul 1024^3':24s}: {2 * 1024**3 / _best(jax.jit(jnp.matmul), a, a) / 1e9:6.1f} GFLOP/s")
+
+
+def _best(fn: object, *args: object, reps: int = 20) -> float:
+    """Best wall seconds of ``reps`` calls after a warm-up."""
+    import jax
+
+    jax.block_until_ready(fn(*args))
+    best = float("inf")
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - t0)
+    return best
