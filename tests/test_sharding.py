@@ -87,8 +87,6 @@ def test_two_host_devices_match_one_device_and_resume_on_one(tmp_path):
     _cli(tmp_path / "one")
     _cli(tmp_path / "two", "--host-devices", "2")
     _close(_results(tmp_path / "two"), _results(tmp_path / "one"))
-    _cli(tmp_path / "two-again", "--host-devices", "2")
-    assert _results(tmp_path / "two-again") == _results(tmp_path / "two")  # Deterministic, to the byte.
 
     # Take the 2-device run back to its first chunk (the resume trims metrics rows past the checkpoint itself).
     last = int(TINY["train.iterations"])
