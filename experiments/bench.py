@@ -48,7 +48,7 @@ def main(sections: list[str]) -> None:
     """Run the named measurements (default: all) and print the table."""
     cores = available_cores()
     if "seeds" in sections:  # Subprocesses, before this process pins itself: a 2-device process gets both cores.
-        bench_scale.seeds_and_devices(__file__)
+        bench_scale.seeds_and_devices()
     if "e2e" in sections:
         print("\n## CPU default end to end: python -m jaxdeconf.run --env bandit --algo bc,dil --seeds 10")
         print(f"##  (bc and dil side by side, a process each, on the {len(cores)} cores available; runs before this")
@@ -213,9 +213,6 @@ SECTIONS = ("seeds", "e2e", "efficiency", "reference", "algos", "lunar", "brax")
 if __name__ == "__main__":
     if sys.argv[1:2] == ["_brax_one"]:
         _brax_one(sys.argv[2], int(sys.argv[3]))
-        sys.exit(0)
-    if sys.argv[1:2] == ["_devices_one"]:
-        bench_scale.devices_one(int(sys.argv[2]))
         sys.exit(0)
     chosen = sys.argv[1:] or list(SECTIONS)
     unknown = [name for name in chosen if name not in SECTIONS]

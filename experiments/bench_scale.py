@@ -14,12 +14,12 @@ SEEDS = (1, 2, 4, 8)
 ITERS = 3
 
 
-def seeds_and_devices(script: str) -> None:
+def seeds_and_devices() -> None:
     """Print s/iteration of dil at the bandit CPU preset for 1, 2, 4, 8 seeds on 1 device and on 2 host devices."""
     print(f"\n## bandit CPU preset, dil: seconds per iteration ({ITERS}-iteration chunk, after its compile) versus")
     print("##  seeds; one device, and the seed axis split over 2 host devices (--host-devices 2); a process, unpinned")
     for devices in (1, 2):
-        proc = subprocess.run([sys.executable, script, "_devices_one", str(devices)], capture_output=True, text=True,
+        proc = subprocess.run([sys.executable, __file__, str(devices)], capture_output=True, text=True,
                               timeout=1800, check=False)
         rows = [line for line in proc.stdout.splitlines() if line.startswith("devices=")]
         print("\n".join(rows) if rows else f"devices={devices}: failed (exit {proc.returncode}) "
@@ -90,3 +90,7 @@ def _best(fn: object, *args: object, reps: int = 20) -> float:
         jax.block_until_ready(fn(*args))
         best = min(best, time.perf_counter() - t0)
     return best
+
+
+if __name__ == "__main__":  # One process of ``seeds_and_devices`` (nothing may start JAX before the device count).
+    devices_one(int(sys.argv[1]))
