@@ -18,9 +18,14 @@ COORDINATOR_ENV, PROCESSES_ENV, PROCESS_ID_ENV = "JAX_COORDINATOR_ADDRESS", "JAX
 def set_host_devices(count: int) -> None:
     """Show this machine's CPU as ``count`` devices, so the seed axis can be split over them (each device runs on its
     own thread). Only the CPU backend is affected; a GPU's devices are what they are."""
+    check_host_devices(count)
+    jax.config.update("jax_num_cpu_devices", count)
+
+
+def check_host_devices(count: int) -> None:
+    """Raise ConfigError unless ``count`` is a valid ``--host-devices``."""
     if count < 1:
         raise ConfigError(f"--host-devices={count} is not allowed: need a positive integer")
-    jax.config.update("jax_num_cpu_devices", count)
 
 
 def distributed_args(coordinator: str | None, processes: int | None, process_id: int | None) -> dict[str, Any] | None:

@@ -222,8 +222,9 @@ def _setup(args: argparse.Namespace) -> tuple[cfg.Config, pathlib.Path]:
     """Validate every input (flags, config, env parameters, memory) before anything is written or compiled."""
     if args.jobs < 0:
         raise ConfigError(f"--jobs={args.jobs} is not allowed: need 0 (automatic) or a positive integer")
-    if args.host_devices < 1:
-        raise ConfigError(f"--host-devices={args.host_devices} is not allowed: need a positive integer")
+    from jaxdeconf.platform import check_host_devices
+
+    check_host_devices(args.host_devices)
     if args.out is not None and not args.out.strip():
         raise ConfigError("--out is empty; give a folder, or leave --out out for results/<env>-<preset>")
     algos = cfg.ALGOS if args.algo.strip() == "all" else tuple(a.strip() for a in args.algo.split(",") if a.strip())
