@@ -5,8 +5,8 @@ it runs on.
 
 Also seconds per iteration versus seeds on one device and over 2 host devices, and the GRU's achieved GFLOP/s against
 a plain matmul's (``bench_scale.py``), and seconds per iteration of every algorithm at each env's CPU preset (section
-``algos``). Sections can be chosen: ``make bench SECTIONS="seeds e2e efficiency reference algos lunar brax"`` (the
-default is all seven).
+``algos``), and milliseconds per part of the default job's iteration (section ``profile``). Sections can be chosen:
+``make bench SECTIONS="seeds e2e efficiency profile reference algos lunar brax"`` (the default is all eight).
 """
 
 from __future__ import annotations
@@ -80,6 +80,8 @@ def main(sections: list[str]) -> None:
 
     if "efficiency" in sections:
         bench_scale.efficiency()
+    if "profile" in sections:
+        bench_scale.profile()
 
     if "algos" in sections:
         print("\n## Every algorithm at each env's CPU preset: seconds per iteration (after warm-up), 1 seed")
@@ -208,7 +210,7 @@ def _brax_one(name: str, n: int) -> None:
           f"{100 * (rates['raw'] / rates['ours'] - 1):+.1f}%", flush=True)
 
 
-SECTIONS = ("seeds", "e2e", "efficiency", "reference", "algos", "lunar", "brax")
+SECTIONS = ("seeds", "e2e", "efficiency", "profile", "reference", "algos", "lunar", "brax")
 
 if __name__ == "__main__":
     if sys.argv[1:2] == ["_brax_one"]:

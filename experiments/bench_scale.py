@@ -1,7 +1,8 @@
 """``make bench`` sections on scale: seconds per iteration versus seeds, on one device and with the seed axis split
-over host devices (section ``seeds``), and per-core efficiency of the GRU steps against a plain matmul measured in
-the same process (section ``efficiency``). Each device count runs in its own process (a process's CPU device count is
-fixed when JAX starts), unpinned, so a 2-device process may use both cores.
+over host devices (section ``seeds``), per-core efficiency of the GRU steps against a plain matmul measured in
+the same process (section ``efficiency``), and where an iteration of the default job goes (section ``profile``).
+Each device count runs in its own process (a process's CPU device count is fixed when JAX starts), unpinned, so a
+2-device process may use both cores.
 """
 
 from __future__ import annotations
@@ -77,6 +78,34 @@ def efficiency() -> None:
         print(f"{label:24s}: {flops / _best(fn, params, x) / 1e9:6.1f} GFLOP/s (matmul FLOPs only)")
     a = jax.random.normal(jax.random.key(2), (1024, 1024))
     print(f"{'matmul 1024^3':24s}: {2 * 1024**3 / _best(jax.jit(jnp.matmul), a, a) / 1e9:6.1f} GFLOP/s")
+
+
+def profile(seeds: int = 10) -> None:
+    """Milliseconds of each part of an iteration of the default job (bandit CPU preset, ``seeds`` seeds vmapped, one
+    core): data collection, the inference model's ELBO steps, the policy's BC steps, and one evaluation."""
+    import jax
+
+    from jaxdeconf.config import build
+    from jaxdeconf.train import build_algorithm
+
+    print(f"\n## Default job, bandit CPU preset, {seeds} seeds vmapped: milliseconds per part of an iteration")
+    for name in ("bc", "dil"):
+        config = build("bandit", "cpu", (name,), seeds, {"train.warmup": "0"})
+        algo = build_algorithm(config, name)
+        keys = jax.random.split(jax.random.key(0), seeds)
+        states = jax.jit(jax.vmap(algo.init))(keys)
+        parts = {"collect expert": algo.collect_expert, "collect own": algo.collect_explore,
+                 "encoder steps": algo.update_encoder}
+        for label, fn in parts.items():  # Each fills the buffers the next parts read.
+            fn = jax.jit(jax.vmap(fn))
+            states = fn(states, keys)[0]
+            parts[label] = _best(fn, states, keys, reps=3)
+        t = config.train
+        parts["policy steps"] = _best(jax.jit(jax.vmap(algo.update_policy)), states, keys, reps=3)
+        parts["evaluation"] = _best(jax.jit(jax.vmap(algo.evaluate)), states, keys, reps=3)
+        print(f"{name:4s}: " + ", ".join(f"{k} {v * 1e3:.0f}" for k, v in parts.items())
+              + f" ms ({t.encoder_steps if name == 'dil' else 0} ELBO and {t.policy_steps} BC steps per iteration; "
+              f"one evaluation per {t.chunk} iterations)", flush=True)
 
 
 def _best(fn: object, *args: object, reps: int = 20) -> float:
