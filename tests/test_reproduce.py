@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
+import pathlib
+import signal
+import subprocess
+import sys
+import time
 
 import pytest
 from conftest import TINY
@@ -78,3 +84,40 @@ def test_bad_input_is_one_line(tmp_path, capsys, argv, message):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"error: {message}")
     assert not (tmp_path / "r" / "README.md").exists()
+
+
+def _descendants(pid: int) -> set[int]:
+    """Every process below ``pid`` (Linux /proc)."""
+    parents = {}
+    for stat in pathlib.Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError, ValueError, IndexError):
+            parents[int(stat.parent.name)] = int(stat.read_text().rpartition(")")[2].split()[1])
+    found, frontier = set(), {pid}
+    while frontier:
+        frontier = {child for child, parent in parents.items() if parent in frontier} - found
+        found |= frontier
+    return found
+
+
+@pytest.mark.slow  # A real training started and stopped: about 30 s.
+@pytest.mark.timeout(300)
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_sigterm_stops_the_running_training_with_the_report(tmp_path):
+    """SIGTERM to the report stops the training it runs (and that training's workers), with one line and exit 143."""
+    long = [a for k, v in {**TINY, "train.iterations": "100000"}.items() for a in ("--set", f"{k}={v}")]
+    proc = subprocess.Popen([sys.executable, "-m", "jaxdeconf.reproduce", "--out", str(tmp_path), "--only",
+                             "bandit", "--algo", "bc", *long], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    metrics = tmp_path / "runs" / "bandit" / "bc" / "metrics.jsonl"
+    deadline = time.monotonic() + 240
+    while not metrics.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.5)  # Until the worker has trained its first chunk.
+    children = _descendants(proc.pid)
+    if not (metrics.exists() and len(children) >= 2):  # The run and its worker.
+        proc.kill()
+        pytest.fail(f"the training did not start: {proc.communicate(timeout=60)[1][-2000:]}")
+    proc.terminate()
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM
+    assert err.strip().splitlines()[-1] == "error: stopped by SIGTERM; rerun the same command to resume"
+    assert not _descendants(proc.pid) and not any(pathlib.Path(f"/proc/{pid}").exists() for pid in children)

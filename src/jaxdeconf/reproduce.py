@@ -22,6 +22,7 @@ from typing import Any
 
 from jaxdeconf.config import ConfigError
 from jaxdeconf.files import FolderLock, command_line, read_json, writable, write_atomic
+from jaxdeconf.processes import Stopped, signals_raise, stop_processes
 
 # The paper's own numbers, for the page (its text and appendix; the MDP shares are read off its Figure 4).
 PAPER_BANDIT = {"expert": 60.0, "interventional": 54.1, "conditional": 32.4, "dil": "≈ 54", "bc": "≈ 33–40"}
@@ -82,7 +83,11 @@ def train(ctx: Context, name: str, env: str, seeds: int, extra: tuple[str, ...] 
     sets = [a for item in (*extra, *ctx.overrides) for a in ("--set", item)]
     cmd = [sys.executable, "-m", "jaxdeconf.run", "--env", env, "--algo", algo or ctx.algos, "--seeds", str(seeds),
            "--preset", ctx.scale.preset, "--out", str(folder), *sets]
-    code = subprocess.run(cmd).returncode
+    proc = subprocess.Popen(cmd)
+    try:
+        code = proc.wait()
+    finally:  # On SIGTERM or Ctrl-C (``Stopped``) the training stops with the report, checkpointed.
+        stop_processes([proc])
     if code != 0:
         raise PartFailedError(f"training {name} ({' '.join(cmd[2:])}) stopped with exit code {code}", code)
     return folder
@@ -312,7 +317,8 @@ def _select(only: str) -> list[Part]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Command line; one ``error:`` line and exit code 2 for bad input, the failing training's code otherwise."""
+    """Command line; one ``error:`` line and exit code 2 for bad input, the failing training's code otherwise, 128 +
+    the signal's number when stopped by SIGTERM or Ctrl-C (the running training stops with it)."""
     args = parse_args(argv)
     try:
         if args.scale not in SCALES:
@@ -322,7 +328,8 @@ def main(argv: list[str] | None = None) -> int:
             out.mkdir(parents=True, exist_ok=True)
             lock = FolderLock(out, command_line())
         try:
-            reproduce(Context(out, SCALES[args.scale], args.algo, tuple(args.set)), parts)
+            with signals_raise():
+                reproduce(Context(out, SCALES[args.scale], args.algo, tuple(args.set)), parts)
         finally:
             lock.release()
     except ConfigError as err:
@@ -331,9 +338,9 @@ def main(argv: list[str] | None = None) -> int:
     except PartFailedError as err:
         print(f"error: {err}; rerun the same command to resume", file=sys.stderr)
         return err.code
-    except KeyboardInterrupt:
-        print("stopped; rerun the same command to resume", file=sys.stderr)
-        return 130
+    except Stopped as stop:
+        print(f"error: stopped by {stop.name}; rerun the same command to resume", file=sys.stderr)
+        return 128 + stop.signum
     return 0
 
 

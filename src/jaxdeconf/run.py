@@ -13,7 +13,6 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Iterable, Iterator
 from typing import Any
 
 from jaxdeconf import config as cfg
@@ -29,6 +28,7 @@ from jaxdeconf.files import (
     writable,
     write_atomic,
 )
+from jaxdeconf.processes import Stopped, signals_raise, stop_processes
 
 
 class _Parser(argparse.ArgumentParser):
@@ -202,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
         set_up = platform.distributed_args(args.coordinator, args.num_processes, args.process_id)
         if set_up is not None:
             return _distributed(args, set_up)
-        with _signals_raise():
+        with signals_raise():
             config, folder = _setup(args)
             lock = prepare_folder(folder, config, args.overwrite)
             try:
@@ -212,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    except _Stopped as stop:
+    except Stopped as stop:
         print(f"error: stopped by {stop.name}; finished chunks are checkpointed: run the same command again to "
               "resume", file=sys.stderr)
         return 128 + stop.signum
@@ -235,30 +235,6 @@ def _setup(args: argparse.Namespace) -> tuple[cfg.Config, pathlib.Path]:
     env, params = make(config.env, **config.env_params)
     check_fits(config, env, params, args.jobs or min(len(config.algos), len(available_cores())))
     return config, pathlib.Path(args.out or f"results/{config.env.rpartition(':')[2]}-{args.preset}")
-
-
-class _Stopped(Exception):  # noqa: N818  (a signal, not an error)
-    """SIGTERM or SIGINT arrived."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signum)
-        self.signum = signum
-        self.name = signal.Signals(signum).name
-
-
-@contextlib.contextmanager
-def _signals_raise() -> Iterator[None]:
-    """Turn SIGTERM and SIGINT (Ctrl-C) into ``_Stopped`` while the run trains, so workers are stopped with it."""
-    def handler(signum: int, frame: Any) -> None:
-        del frame  # Unused.
-        raise _Stopped(signum)
-
-    old = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        yield
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
 
 
 def pin_to_core(core: int) -> None:
@@ -331,22 +307,8 @@ def _train_workers(folder: pathlib.Path, queue: list[str], jobs: int, quiet: boo
     try:
         _schedule(folder, queue, jobs, quiet, host_devices, running, codes)
     finally:  # Normally nothing is left; on SIGTERM or Ctrl-C, the workers stop with the run.
-        _stop(proc for _, proc in running.values())
+        stop_processes(proc for _, proc in running.values())
     return codes
-
-
-def _stop(procs: Iterable[subprocess.Popen], grace_s: float = 20.0) -> None:
-    """SIGTERM the workers still running, wait up to ``grace_s`` for them, then SIGKILL any left."""
-    procs = [p for p in procs if p.poll() is None]
-    for p in procs:
-        p.terminate()
-    deadline = time.monotonic() + grace_s
-    for p in procs:
-        try:
-            p.wait(timeout=max(0.1, deadline - time.monotonic()))
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
 
 
 def _schedule(folder: pathlib.Path, queue: list[str], jobs: int, quiet: bool, host_devices: int,
@@ -410,7 +372,7 @@ def _distributed(args: argparse.Namespace, set_up: dict[str, Any]) -> int:
     if not is_primary():  # One process prints (errors still reach stderr), the C++ libraries' lines too.
         sys.stdout.flush()
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-    with _signals_raise():
+    with signals_raise():
         config, folder = _setup(args)
         lock = prepare_folder(folder, config, args.overwrite) if is_primary() else None
         try:
