@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import json
+import os
 import pathlib
 import signal
 import subprocess
@@ -100,24 +101,31 @@ def _descendants(pid: int) -> set[int]:
 
 
 @pytest.mark.slow  # A real training started and stopped: about 30 s.
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(420)
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_sigterm_stops_the_running_training_with_the_report(tmp_path):
-    """SIGTERM to the report stops the training it runs (and that training's workers), with one line and exit 143."""
+    """SIGTERM to the report stops the training it runs (and that training's workers), with exit 143."""
     long = [a for k, v in {**TINY, "train.iterations": "100000"}.items() for a in ("--set", f"{k}={v}")]
-    proc = subprocess.Popen([sys.executable, "-m", "jaxdeconf.reproduce", "--out", str(tmp_path), "--only",
-                             "bandit", "--algo", "bc", *long], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True)
-    metrics = tmp_path / "runs" / "bandit" / "bc" / "metrics.jsonl"
-    deadline = time.monotonic() + 240
-    while not metrics.exists() and proc.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.5)  # Until the worker has trained its first chunk.
-    children = _descendants(proc.pid)
-    if not (metrics.exists() and len(children) >= 2):  # The run and its worker.
-        proc.kill()
-        pytest.fail(f"the training did not start: {proc.communicate(timeout=60)[1][-2000:]}")
-    proc.terminate()
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 128 + signal.SIGTERM
-    assert err.strip().splitlines()[-1] == "error: stopped by SIGTERM; rerun the same command to resume"
-    assert not _descendants(proc.pid) and not any(pathlib.Path(f"/proc/{pid}").exists() for pid in children)
+    out, log = tmp_path / "report", tmp_path / "stderr.txt"
+    with open(log, "w") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "jaxdeconf.reproduce", "--out", str(out), "--only", "bandit",
+                                 "--algo", "bc", *long], stdout=subprocess.DEVNULL, stderr=err,
+                                start_new_session=True)
+    metrics, children, done = out / "runs" / "bandit" / "bc" / "metrics.jsonl", set(), False
+    try:
+        deadline = time.monotonic() + 180
+        while not metrics.exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.5)  # Until the worker has trained its first chunk.
+        children = _descendants(proc.pid)
+        assert metrics.exists() and len(children) >= 2, log.read_text()[-2000:]  # The run and its worker.
+        proc.terminate()
+        assert proc.wait(timeout=120) == 128 + signal.SIGTERM
+        assert log.read_text().strip().splitlines()[-1] == (
+            "error: stopped by SIGTERM; rerun the same command to resume")
+        assert not [pid for pid in children if pathlib.Path(f"/proc/{pid}").exists()]
+        done = True
+    finally:  # Whatever failed, nothing of it keeps training.
+        for pid in () if done else (proc.pid, *children):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        proc.wait()

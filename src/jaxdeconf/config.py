@@ -80,8 +80,8 @@ class TrainConfig:
     prediction_steps: int = _field(1, ">=1")  # K: how many future observations the decoder predicts from z_t.
     eval_episodes: int = _field(64, ">=1")  # Online evaluation episodes per chunk.
     # Seeds a device computes at once (vmapped); the rest of its seeds follow in turn. 0 (the default) vmaps all of a
-    # device's seeds, the fastest also on a CPU; 1 makes every seed's run the same program whatever the number of
-    # seeds, so a seed's results are identical to the bit alone or among others (about 25% slower on a CPU).
+    # device's seeds, faster than one at a time also on a CPU (docs/scale.md); 1 makes every seed's run the same
+    # program whatever the number of seeds, so a seed's results are identical to the bit alone or among others.
     seed_batch: int = _field(0, ">=0")
 
 

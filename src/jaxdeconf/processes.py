@@ -4,14 +4,17 @@ stops its children before it exits, so no training outlives the command that sta
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import subprocess
 import time
 from collections.abc import Iterable, Iterator
 from typing import Any
 
+SIGNALS = (signal.SIGTERM, signal.SIGINT)
 
-class Stopped(Exception):  # noqa: N818  (a signal, not an error)
+
+class Stopped(BaseException):  # Like KeyboardInterrupt: no `except Exception` swallows it.
     """SIGTERM or SIGINT arrived."""
 
     def __init__(self, signum: int) -> None:
@@ -22,12 +25,15 @@ class Stopped(Exception):  # noqa: N818  (a signal, not an error)
 
 @contextlib.contextmanager
 def signals_raise() -> Iterator[None]:
-    """Turn SIGTERM and SIGINT into ``Stopped`` inside the block, so the caller can stop its children with it."""
+    """Turn the first SIGTERM or SIGINT inside the block into ``Stopped``; later ones are ignored, so the clean-up
+    that ``Stopped`` starts (stopping children, which ends in SIGKILL anyway) is not cut short."""
     def handler(signum: int, frame: Any) -> None:
         del frame  # Unused.
+        for s in SIGNALS:
+            signal.signal(s, signal.SIG_IGN)
         raise Stopped(signum)
 
-    old = {s: signal.signal(s, handler) for s in (signal.SIGTERM, signal.SIGINT)}
+    old = {s: signal.signal(s, handler) for s in SIGNALS}
     try:
         yield
     finally:
@@ -35,8 +41,10 @@ def signals_raise() -> Iterator[None]:
             signal.signal(s, h)
 
 
-def stop_processes(procs: Iterable[subprocess.Popen], grace_s: float = 20.0) -> None:
-    """SIGTERM the processes still running, wait up to ``grace_s`` for them, then SIGKILL any left."""
+def stop_processes(procs: Iterable[subprocess.Popen], grace_s: float = 20.0, group: bool = False) -> None:
+    """SIGTERM the processes still running, wait up to ``grace_s`` for them, then SIGKILL any left; with ``group``
+    (processes started with ``start_new_session=True``) the SIGKILL goes to each one's whole process group, so its
+    own children go with it."""
     procs = [p for p in procs if p.poll() is None]
     for p in procs:
         p.terminate()
@@ -47,3 +55,6 @@ def stop_processes(procs: Iterable[subprocess.Popen], grace_s: float = 20.0) -> 
         except subprocess.TimeoutExpired:
             p.kill()
             p.wait()
+        if group:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(p.pid, signal.SIGKILL)  # Whatever of its group is left (a worker mid-chunk).

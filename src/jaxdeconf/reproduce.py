@@ -21,7 +21,7 @@ from collections.abc import Callable
 from typing import Any
 
 from jaxdeconf.config import ConfigError
-from jaxdeconf.files import FolderLock, command_line, read_json, writable, write_atomic
+from jaxdeconf.files import FolderLock, command_line, read_json, remove_temporaries, writable, write_atomic
 from jaxdeconf.processes import Stopped, signals_raise, stop_processes
 
 # The paper's own numbers, for the page (its text and appendix; the MDP shares are read off its Figure 4).
@@ -83,11 +83,13 @@ def train(ctx: Context, name: str, env: str, seeds: int, extra: tuple[str, ...] 
     sets = [a for item in (*extra, *ctx.overrides) for a in ("--set", item)]
     cmd = [sys.executable, "-m", "jaxdeconf.run", "--env", env, "--algo", algo or ctx.algos, "--seeds", str(seeds),
            "--preset", ctx.scale.preset, "--out", str(folder), *sets]
-    proc = subprocess.Popen(cmd)
-    try:
-        code = proc.wait()
-    finally:  # On SIGTERM or Ctrl-C (``Stopped``) the training stops with the report, checkpointed.
-        stop_processes([proc])
+    procs: list[subprocess.Popen] = []
+    try:  # Its own session: Ctrl-C reaches the report alone, which then stops the training and its workers in order.
+        procs.append(subprocess.Popen(cmd, start_new_session=True))
+        code = procs[0].wait()
+    finally:  # On SIGTERM or Ctrl-C (``Stopped``) the training stops with the report, checkpointed. The training
+        # gives its workers 20 s; this waits longer, then kills what is left of its process group.
+        stop_processes(procs, grace_s=40.0, group=True)
     if code != 0:
         raise PartFailedError(f"training {name} ({' '.join(cmd[2:])}) stopped with exit code {code}", code)
     return folder
@@ -321,17 +323,19 @@ def main(argv: list[str] | None = None) -> int:
     the signal's number when stopped by SIGTERM or Ctrl-C (the running training stops with it)."""
     args = parse_args(argv)
     try:
-        if args.scale not in SCALES:
-            raise ConfigError(f"--scale {args.scale!r} is not one of {', '.join(SCALES)}")
-        parts, out = _select(args.only), pathlib.Path(args.out)
-        with writable(out):
-            out.mkdir(parents=True, exist_ok=True)
-            lock = FolderLock(out, command_line())
-        try:
-            with signals_raise():
+        with signals_raise():
+            if args.scale not in SCALES:
+                raise ConfigError(f"--scale {args.scale!r} is not one of {', '.join(SCALES)}")
+            parts, out = _select(args.only), pathlib.Path(args.out)
+            with writable(out):
+                out.mkdir(parents=True, exist_ok=True)
+                lock = FolderLock(out, command_line())
+            try:
+                for folder in (out, *(out / "parts").glob("*")):  # What a stopped ``write_atomic`` left.
+                    remove_temporaries(folder)
                 reproduce(Context(out, SCALES[args.scale], args.algo, tuple(args.set)), parts)
-        finally:
-            lock.release()
+            finally:
+                lock.release()
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
