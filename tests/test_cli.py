@@ -219,10 +219,10 @@ def test_memory_estimate_bounds_the_state(tiny_config):
 @pytest.mark.timeout(1200)  # Five runs of the CLI, three of which train.
 def test_run_then_protect_results(tmp_path, capfd):
     folder = tmp_path / "run"
-    argv = ["--algo", "bc,dil", "--seeds", "2", "--out", str(folder), "--quiet", *TINY_ARGS]
+    argv = ["--algo", "dil", "--seeds", "2", "--out", str(folder), "--quiet", *TINY_ARGS]
     assert main(argv) == 0
     for name in ("config.json", "references.json", "summary.md", "summary.csv", "learning_curves.png", "p_best.png",
-                 "bc/metrics.jsonl", "dil/metrics.jsonl", "dil/curves.npz", "dil/DONE"):
+                 "dil/metrics.jsonl", "dil/curves.npz", "dil/DONE"):
         assert (folder / name).exists(), name
     assert "| dil |" in (folder / "summary.md").read_text()
     before = _snapshot(folder)
@@ -249,7 +249,7 @@ def test_run_then_protect_results(tmp_path, capfd):
     with np.load(folder / "dil" / "curves.npz") as f:
         assert {k: f[k].tobytes() for k in f.files} == {k: v.tobytes() for k, v in curves.items()}
     after = _snapshot(folder)
-    for name in ("dil/metrics.jsonl", "bc/metrics.jsonl", "references.json", "summary.csv"):
+    for name in ("dil/metrics.jsonl", "references.json", "summary.csv"):
         assert after[name] == before[name], name
 
     # A different config on the same folder is refused, naming the difference.

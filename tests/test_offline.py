@@ -180,7 +180,8 @@ SHORT = {"env.horizon": "30", "train.iterations": "20", "train.warmup": "5", "tr
 BOUND = 7.3
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.slow  # A learning check: about 2 min on one core.
+@pytest.mark.timeout(600)
 def test_bandit_learns_at_a_reduced_budget(tmp_path):
     """Clearly above chance (6 of 30; the expert pulls the best arm 18 times) after 800 VAE steps."""
     config = build("bandit", "cpu", ("dil_offline",), 2, SHORT)

@@ -78,6 +78,7 @@ def _close(a: dict[str, bytes], b: dict[str, bytes]) -> None:
                                    rtol=1e-4, atol=1e-5, err_msg=key)
 
 
+@pytest.mark.slow  # Three CLI runs of dil: 2-3 min on two cores.
 @pytest.mark.timeout(900)
 def test_two_host_devices_match_one_device_and_resume_on_one(tmp_path):
     """3 seeds (padded to 4) on 2 host devices give the metrics and curves of the same run on one device, to

@@ -20,7 +20,7 @@ def _rows(folder):
     return [json.loads(line) for line in (folder / "metrics.jsonl").read_text().splitlines()]
 
 
-@pytest.mark.parametrize("algo", ["bc", "dil"])
+@pytest.mark.parametrize("algo", [pytest.param("bc", marks=pytest.mark.slow), "dil"])  # dil holds bc's path too.
 def test_same_seed_same_metrics(tmp_path, tiny_config, algo):
     config = tiny_config()
     train_algorithm(config, algo, tmp_path / "a", progress=False)
