@@ -10,6 +10,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from jaxdeconf.config import ConfigError
+from jaxdeconf.sharding import place
 
 
 def _to_raw(state: Any) -> Any:
@@ -30,8 +31,7 @@ def _leading(metadata: Any) -> int:
 
 def _place_like(host: np.ndarray, like: jax.Array) -> jax.Array:
     """``host``'s first seeds (repeated cyclically where ``like`` has more) with the shape and placement of ``like``."""
-    host = host[np.arange(like.shape[0]) % host.shape[0]]
-    return jax.make_array_from_callback(host.shape, like.sharding, lambda index: host[index])
+    return place(host[np.arange(like.shape[0]) % host.shape[0]], like.sharding)
 
 
 class Checkpoints:

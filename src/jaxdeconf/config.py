@@ -197,7 +197,6 @@ def _locomotion_cpu(horizon: int, prediction_steps: int, anneal: int) -> dict[st
 def _locomotion_paper(latent: int, prediction_steps: int, buffer_episodes: int, anneal: int) -> dict[str, Any]:
     """The paper's configuration for the Brax envs (meant for a GPU)."""
     return {
-        "train.seed_batch": 0,
         "model.width": 128,
         "model.action_embed": 32,
         "model.gru": 500,
@@ -247,7 +246,6 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         },
         # The reference code's bandit configuration (batch 32, 100 policy / 1 encoder step per iteration).
         "paper": {
-            "train.seed_batch": 0,  # All seeds at once: meant for an accelerator.
             "model.width": 128,
             "model.action_embed": 32,
             "model.gru": 500,
@@ -292,7 +290,6 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         },
         # The paper's configuration (for a GPU): GRU 500, latent 64, K = 50, replay of 2e6 transitions.
         "paper": {
-            "train.seed_batch": 0,  # All seeds at once: meant for an accelerator.
             "model.width": 128,
             "model.action_embed": 32,
             "model.gru": 500,

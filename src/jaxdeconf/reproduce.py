@@ -84,7 +84,7 @@ def train(ctx: Context, name: str, env: str, seeds: int, extra: tuple[str, ...] 
     cmd = [sys.executable, "-m", "jaxdeconf.run", "--env", env, "--algo", algo or ctx.algos, "--seeds", str(seeds),
            "--preset", ctx.scale.preset, "--out", str(folder), *sets]
     procs: list[subprocess.Popen] = []
-    try:  # Its own session: Ctrl-C reaches the report alone, which then stops the training and its workers in order.
+    try:  # Its own process group: Ctrl-C reaches the report alone, which then stops the training and its workers.
         procs.append(subprocess.Popen(cmd, start_new_session=True))
         code = procs[0].wait()
     finally:  # On SIGTERM or Ctrl-C (``Stopped``) the training stops with the report, checkpointed. The training

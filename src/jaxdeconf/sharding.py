@@ -48,7 +48,12 @@ class SeedLayout:
     def place(self, tree: Any) -> Any:
         """A tree of host arrays with ``padded`` leading seeds as arrays sharded like the chunk's inputs (on every
         process, each process providing its own devices' shards)."""
-        return jax.tree.map(lambda x: jax.make_array_from_callback(x.shape, self.sharding, lambda i: x[i]), tree)
+        return jax.tree.map(lambda x: place(x, self.sharding), tree)
+
+
+def place(host: np.ndarray, sharding: jax.sharding.Sharding) -> jax.Array:
+    """A host array as a jax.Array laid out by ``sharding`` (each process providing its own devices' shards)."""
+    return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
 
 
 def seed_layout(seeds: int, devices: list[Any] | None = None) -> SeedLayout:
