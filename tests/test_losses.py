@@ -254,3 +254,16 @@ def test_grouped_elbo_scan_matches_plain_loop(weighting):
         count += jnp.sum(valid[t])
         prev = (mean, logvar)
     assert float(loss) == pytest.approx(float(total / count), rel=1e-5)
+
+
+def test_training_latents_current_and_final():
+    """"current" keeps each step's posterior mean; "final" gives every step of an episode the mean at its last valid
+    step (episode 0 runs 3 steps, episode 1 all 4)."""
+    from jaxdeconf.algos.dil import training_latents
+
+    mean = jnp.arange(4 * 2 * 1, dtype=jnp.float32).reshape(4, 2, 1)  # mean[t, b] = 2t + b
+    valid = jnp.array([[1, 1], [1, 1], [1, 1], [0, 1]], bool)
+    np.testing.assert_array_equal(training_latents(mean, valid, "current"), mean)
+    final = training_latents(mean, valid, "final")
+    np.testing.assert_array_equal(final[:, 0, 0], [4.0] * 4)
+    np.testing.assert_array_equal(final[:, 1, 0], [7.0] * 4)

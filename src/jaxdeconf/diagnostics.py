@@ -19,6 +19,34 @@ RIDGE = 1e-3  # Keeps the per-step least-squares fit well-posed when the belief 
 MIN_EPISODES = 8  # Fewer valid episodes in either half gives NaN for that step.
 
 
+def spd_solve(a: jax.Array, b: jax.Array) -> jax.Array:
+    """x with a x = b, for a symmetric positive-definite a [n, n] and b [n, k], by Cholesky and two substitutions.
+
+    Written out (n steps of masked vector operations) because ``jnp.linalg.solve`` calls LAPACK, whose batched CPU
+    kernels (jaxlib 0.10.2) split the batch over XLA's intra-op thread pool and, inside the seed-vmapped training
+    program, were seen to deadlock with every thread idle.
+    """
+    n = a.shape[0]
+    idx = jnp.arange(n)
+
+    def column(j: jax.Array, chol: jax.Array) -> jax.Array:  # chol holds columns < j of the factor L.
+        v = a[:, j] - chol @ chol[j]
+        col = jnp.where(idx >= j, v / jnp.sqrt(v[j]), 0.0)
+        return jnp.where(idx[None, :] == j, col[:, None], chol)
+
+    chol = jax.lax.fori_loop(0, n, column, jnp.zeros_like(a))
+
+    def forward(i: jax.Array, y: jax.Array) -> jax.Array:  # L y = b, row i from rows < i.
+        return jnp.where(idx[:, None] == i, (b[i] - chol[i] @ y) / chol[i, i], y)
+
+    def backward(k: jax.Array, x: jax.Array) -> jax.Array:  # L^T x = y, row i = n - 1 - k from rows > i.
+        i = n - 1 - k
+        return jnp.where(idx[:, None] == i, (y[i] - chol[:, i] @ x) / chol[i, i], x)
+
+    y = jax.lax.fori_loop(0, n, forward, jnp.zeros_like(b))
+    return jax.lax.fori_loop(0, n, backward, jnp.zeros_like(b))
+
+
 def _r2(z: jax.Array, theta: jax.Array, valid: jax.Array) -> jax.Array:
     """Held-out R² of a ridge-regularised linear map z [B, L] -> θ [B, D], fitted on the first half of the valid
     episodes and scored on the second (averaged over θ's dimensions); NaN when a half has too few."""
@@ -27,7 +55,7 @@ def _r2(z: jax.Array, theta: jax.Array, valid: jax.Array) -> jax.Array:
     w_fit = (jnp.arange(z.shape[0]) < half) & valid
     w_test = (jnp.arange(z.shape[0]) >= half) & valid
     xw = x * w_fit[:, None]
-    coef = jnp.linalg.solve(xw.T @ x + RIDGE * jnp.eye(x.shape[1]), xw.T @ theta)
+    coef = spd_solve(xw.T @ x + RIDGE * jnp.eye(x.shape[1]), xw.T @ theta)
     resid = jnp.sum(((x @ coef - theta) ** 2) * w_test[:, None], axis=0)
     n_test = jnp.maximum(jnp.sum(w_test), 1)
     mean = jnp.sum(theta * w_test[:, None], axis=0) / n_test

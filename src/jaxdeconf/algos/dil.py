@@ -29,7 +29,8 @@ from jaxdeconf.models import Decoder, Encoder, EvidenceEncoder, LatentPolicy, ac
 @dataclasses.dataclass(frozen=True)
 class Deconfounded(Algorithm):
     """Algorithm 1: an inference model trained by the sequential ELBO on the imitator's own episodes, and a
-    latent-conditional policy cloned on expert episodes with θ-hat = the posterior mean at the current step.
+    latent-conditional policy cloned on expert episodes with θ-hat = the posterior mean at the current step (or, with
+    ``model.policy_latent=final``, after the whole episode).
 
     For Gaussian observation likelihoods the decoder predicts standardised one-step changes of the observation; the
     per-dimension scale is fixed once from expert data (``delta_scale``), as the paper normalises from expert data.
@@ -164,12 +165,24 @@ class Deconfounded(Algorithm):
         t = self.config.train
         if t.buffer_episodes > t.batch_size * t.policy_steps:
             return None
-        return self.posterior_means(state, state.expert_buffer.data)
+        data = state.expert_buffer.data
+        return training_latents(self.posterior_means(state, data), data.valid, self.config.model.policy_latent)
 
     def policy_outputs(
         self, policy_params: Any, state: TrainState, traj: Trajectory, context: jax.Array | None = None
     ) -> jax.Array:
-        """pi_eta(a_t | s_t, mean of q_phi(. | tau_{:t})) with the encoder frozen (detached)."""
+        """pi_eta(a_t | s_t, θ-hat) with θ-hat from the frozen (detached) encoder (``training_latents``)."""
         _, _, policy = self.networks
-        mean = self.posterior_means(state, traj) if context is None else context
-        return policy.apply(policy_params, traj.obs.imitator[: traj.horizon], mean)
+        if context is None:
+            context = training_latents(self.posterior_means(state, traj), traj.valid, self.config.model.policy_latent)
+        return policy.apply(policy_params, traj.obs.imitator[: traj.horizon], context)
+
+
+def training_latents(mean: jax.Array, valid: jax.Array, which: str) -> jax.Array:
+    """The θ-hat [T, B, L] the policy is cloned on from posterior means [T, B, L] along episodes with mask [T, B]:
+    ``"current"`` keeps each step's mean; ``"final"`` gives every step the mean at the episode's last valid step."""
+    if which == "current":
+        return mean
+    last = jnp.maximum(jnp.sum(valid, axis=0) - 1, 0)
+    final = jnp.take_along_axis(mean, last[None, :, None], axis=0)
+    return jnp.broadcast_to(final, mean.shape)
