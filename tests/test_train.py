@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 from conftest import assert_rows_close
 
+from jaxdeconf.algos import NAMES as ALGOS
 from jaxdeconf.algos.dil import Deconfounded
 from jaxdeconf.data import buffer_add, buffer_sample
-from jaxdeconf.train import build_algorithm, seed_keys, train_algorithm
+from jaxdeconf.train import build_algorithm, compiled_chunk, over_seeds, seed_keys, train_algorithm
 
 
 def _rows(folder):
@@ -73,3 +74,17 @@ def test_cached_latents_equal_per_batch_encoding(tiny_config):
 def test_seed_keys_follow_seed_start(tiny_config):
     config = dataclasses.replace(tiny_config(seeds=2), seed_start=5)
     np.testing.assert_array_equal(jax.random.key_data(seed_keys(config)[1]), jax.random.key_data(jax.random.key(6)))
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+def test_programs_call_no_lapack(tiny_config, algo):
+    """The seed-vmapped init and chunk programs contain no LAPACK call: jaxlib 0.10.2's batched CPU LAPACK kernels
+    split the seed batch over XLA's thread pool and deadlocked there (gdb: every thread idle, a LAPACK kernel
+    waiting for its batch), so the probe's solve and the GRUs' orthogonal initialiser are written without it."""
+    config = tiny_config()
+    built = build_algorithm(config, algo)
+    keys = jax.random.key_data(seed_keys(config))
+    init = over_seeds(lambda k: built.init(jax.random.wrap_key_data(k)), config)
+    states = jax.eval_shape(init, keys)
+    texts = [init.lower(keys).as_text(), compiled_chunk(built, 1).lower(states).as_text()]
+    assert not [t for t in texts if "lapack" in t.lower()]

@@ -6,6 +6,7 @@ so that the loops over time live in ``losses.py`` as ``lax.scan``s that tests ca
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import flax.linen as nn
@@ -15,6 +16,37 @@ import jax.numpy as jnp
 from jaxdeconf.envs.base import ActionSpace
 
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+
+
+def orthonormal_columns(z: jax.Array) -> jax.Array:
+    """Q [r, c] of z = QR with diag(R) > 0 (r >= c), by Gram–Schmidt applied twice per column ("twice is enough")."""
+    idx = jnp.arange(z.shape[1])
+
+    def column(j: jax.Array, q: jax.Array) -> jax.Array:  # Columns >= j of q are still zero.
+        v = z[:, j]
+        v = v - q @ (q.T @ v)
+        v = v - q @ (q.T @ v)
+        return jnp.where(idx[None, :] == j, (v / jnp.sqrt(jnp.sum(v * v)))[:, None], q)
+
+    return jax.lax.fori_loop(0, z.shape[1], column, jnp.zeros_like(z))
+
+
+def orthogonal(scale: float = 1.0) -> nn.initializers.Initializer:
+    """flax's ``nn.initializers.orthogonal`` (columns on the last axis; the same normal draw, the same matrix up to
+    rounding) without LAPACK: jaxlib 0.10.2's batched CPU QR splits the seed batch over XLA's thread pool and was seen
+    to deadlock inside the seed-vmapped programs with every thread idle. Every GRU of the imitators uses this."""
+
+    def init(key: jax.Array, shape: tuple[int, ...], dtype: jnp.dtype = jnp.float32) -> jax.Array:
+        rows, cols = math.prod(shape) // shape[-1], shape[-1]
+        q = orthonormal_columns(jax.random.normal(key, (max(rows, cols), min(rows, cols)), dtype))
+        return (scale * (q.T if rows < cols else q)).reshape(shape).astype(dtype)
+
+    return init
+
+
+def gru_cell(hidden: int) -> nn.GRUCell:
+    """flax's GRU cell with its orthogonal recurrent initialiser replaced by ``orthogonal`` (no LAPACK)."""
+    return nn.GRUCell(hidden, recurrent_kernel_init=orthogonal())
 
 
 class MLP(nn.Module):
@@ -115,7 +147,7 @@ class Encoder(StepInput):
     def setup(self) -> None:
         """Sub-networks shared by ``embed`` and ``recur``."""
         super().setup()
-        self.cell = nn.GRUCell(self.hidden)
+        self.cell = gru_cell(self.hidden)
         self.out = nn.Dense(2 * self.latent)
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
@@ -213,7 +245,7 @@ class RecurrentPolicy(StepInput):
     def setup(self) -> None:
         """Sub-networks shared by ``embed`` and ``recur``."""
         super().setup()
-        self.cell = nn.GRUCell(self.hidden)
+        self.cell = gru_cell(self.hidden)
         self.head = MLP((self.width,))
         self.out = nn.Dense(self.out_size)
 
