@@ -1,4 +1,4 @@
-"""Shared tiny configurations, so each compiled shape is built once per session."""
+"""Shared tiny configurations, so each compiled shape is built once per test run."""
 
 from __future__ import annotations
 
