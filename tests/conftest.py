@@ -2,8 +2,12 @@
 
 from __future__ import annotations
 
+import os
 import pathlib
+import shutil
+import tempfile
 
+import jax
 import numpy as np
 import pytest
 
@@ -12,6 +16,31 @@ from jaxdeconf.run import available_cores, pin_to_core
 
 
 def pytest_configure(config):
+    """Pin this process to a core, and share compiled programs across the test run's processes."""
+    _pin(config)
+    _share_compilations(config)
+
+
+def pytest_unconfigure(config):
+    if getattr(config, "_jax_cache_owner", False):
+        shutil.rmtree(os.environ.pop("JAX_COMPILATION_CACHE_DIR"), ignore_errors=True)
+
+
+def _share_compilations(config):
+    """JAX's persistent compilation cache in a folder that lives as long as this test run: many tests build the same
+    tiny programs, and the CLI tests retrain in new processes, so each program compiles once per run instead of once
+    per test. The process that starts the run makes the folder; xdist workers and the CLI tests' subprocesses inherit
+    it through the environment."""
+    if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+        os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxdeconf-tests-xla-")
+        os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0.5"
+        config._jax_cache_owner = True
+    jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
+    jax.config.update("jax_persistent_cache_min_compile_time_secs",
+                      float(os.environ.get("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")))
+
+
+def _pin(config):
     """Each test process runs on one core, so two test processes never compete for a core. Under pytest-xdist
     (``-n 2`` in pyproject.toml) worker gwN takes core N and the controller, which only distributes tests, stays
     unpinned, so the workers it starts inherit every core. The CLI tests' training subprocesses inherit their test
