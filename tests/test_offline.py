@@ -171,6 +171,29 @@ def test_training_never_steps_the_environment_besides_the_experts_episodes():
 
 
 
+@pytest.mark.timeout(120)
+def test_synthetic_latents_from_the_prior_or_from_q_off():
+    """``prior`` draws N(0, I); ``posterior`` samples q_off on the chosen expert episodes: with q_off made to output
+    (mean, logvar) whatever it reads, that is mean + exp(logvar / 2) times the prior's draw from the same key."""
+    env = Bandit()
+    params = env.default_params().replace(horizon=int(TINY["env.horizon"]))
+    prior = make_algorithm("dil_offline", env, params, _offline_config())
+    posterior = make_algorithm("dil_offline", env, params, _offline_config(**{"offline.synthetic_latent": "posterior"}))
+    state = jax.jit(prior.init)(jax.random.key(0))
+    state, _ = jax.jit(prior.collect_expert)(state, jax.random.key(1))
+    latent = prior.config.model.latent
+    mean, logvar = np.linspace(-1.0, 1.0, latent), np.linspace(-2.0, 0.5, latent)
+    q_off = jax.tree.map(jnp.zeros_like, state.encoder.params["offline"])
+    q_off["params"]["out"]["bias"] = jnp.asarray(np.concatenate([mean, logvar]), jnp.float32)
+    state = state.replace(encoder=state.encoder.replace(params={**state.encoder.params, "offline": q_off}))
+    episodes = jax.tree.map(lambda d: d[:, :3], state.expert_buffer.data)
+    key = jax.random.key(5)
+    draw = np.asarray(prior.synthetic_latents(state, episodes, key))
+    np.testing.assert_array_equal(draw, np.asarray(jax.random.normal(key, (3, latent))))
+    np.testing.assert_allclose(np.asarray(posterior.synthetic_latents(state, episodes, key)),
+                               mean + np.exp(0.5 * logvar) * draw, rtol=1e-5, atol=1e-6)
+
+
 #: The learning check's reduced budget: 30-step episodes, 30 iterations, small step counts.
 SHORT = {"env.horizon": "30", "train.iterations": "20", "train.warmup": "5", "train.chunk": "20",
          "train.eval_episodes": "256", "offline.vae_steps": "40", "offline.online_steps": "40"}

@@ -17,6 +17,7 @@ POLICY_LATENTS = ("current", "final")
 DISC_INPUTS = ("next", "transition")
 GAIL_REWARDS = ("discriminator", "env")
 EXPLORERS = ("uniform", "policy")
+SYNTHETIC_LATENTS = ("prior", "posterior")
 
 
 class ConfigError(ValueError):
@@ -134,6 +135,9 @@ class OfflineConfig:
     # The theta-independent Markov policy that acts in synthetic episodes: "uniform" (uniform over the arms, or over
     # the box [-1, 1]^n) or "policy" (pi_eta on a second latent drawn from the prior, independent of the episode's).
     explore: str = _field("uniform", EXPLORERS)
+    # Where a synthetic episode's θ-tilde comes from: "prior" (N(0, I), Algorithm 3) or "posterior" (a sample of
+    # q_off on the expert episode that gave s_0: the latents p_psi was trained on, none from between its clusters).
+    synthetic_latent: str = _field("prior", SYNTHETIC_LATENTS)
     beta: float = _field(1.0, ">=0")  # KL weight of the offline ELBO (eq. 12), against N(0, I).
     # KL weight of q_on's sequential ELBO (eq. 11) on synthetic episodes. 1 makes q_on the variational posterior
     # under the prior and p_psi; on the bandit (2 seeds, 100 iterations) dil's 0.001 left it at 46.4 best arms, 1 at

@@ -227,6 +227,22 @@ def trajectory_posterior(
     return mean, logvar
 
 
+def episode_posterior(
+    encoder: Encoder | EvidenceEncoder,
+    params: Any,
+    obs: jax.Array,
+    feats: jax.Array,
+    valid: jax.Array,
+    encoder_delta_scale: jax.Array | None = None,
+) -> tuple[jax.Array, jax.Array]:
+    """q_off's mean and log-variance [B, L] of whole episodes: obs [T+1, B, d] (imitator view), action features
+    [T, B, F], valid [T, B]. q_off reads s_0, then (a_{t-1}, s_t) where step t-1 was valid."""
+    enc_obs = obs if encoder_delta_scale is None else transition_inputs(obs, encoder_delta_scale)
+    enc_prev = jnp.concatenate([jnp.zeros_like(feats[:1]), feats], axis=0)
+    read = jnp.concatenate([jnp.ones_like(valid[:1]), valid], axis=0)
+    return trajectory_posterior(encoder, params, enc_obs, enc_prev, read)
+
+
 def offline_elbo_loss(
     params: dict[str, Any],
     obs: jax.Array,
@@ -254,11 +270,7 @@ def offline_elbo_loss(
     """
     T = valid.shape[0]
     feats = action_features(space, action)
-    # q_off reads s_0 .. s_T; s_{t+1} is real where step t was valid (s_0 always).
-    enc_obs = obs if encoder_delta_scale is None else transition_inputs(obs, encoder_delta_scale)
-    enc_prev = jnp.concatenate([jnp.zeros_like(feats[:1]), feats], axis=0)
-    read = jnp.concatenate([jnp.ones_like(valid[:1]), valid], axis=0)
-    mean, logvar = trajectory_posterior(encoder, params["offline"], enc_obs, enc_prev, read)
+    mean, logvar = episode_posterior(encoder, params["offline"], obs, feats, valid, encoder_delta_scale)
     z = mean + jnp.exp(0.5 * logvar) * jax.random.normal(key, mean.shape)
     z_t = jnp.broadcast_to(z, (T, *z.shape))
     dynamics_nll, _ = prediction_nll(decoder, params["decoder"], z_t, obs, feats, valid, 1, likelihood, delta_scale)

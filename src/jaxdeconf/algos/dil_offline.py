@@ -4,9 +4,10 @@ learns the sequential ELBO on synthetic episodes of p_psi; Algorithm 2 with q_on
 
 The imitator never acts in the environment during training: the only env steps are the expert's demonstrations
 (collected as every algorithm collects them) and the evaluation. A synthetic episode is a ``lax.scan`` over p_psi
-alone: θ-tilde from the prior N(0, I), s_0 and the episode's length (its ``valid`` mask) from a stored expert episode,
-actions from a θ-independent Markov policy (``offline.explore``), next observations from p_psi (sampled for Bernoulli
-observations; the mean change plus ``offline.dynamics_noise`` standard deviations for Gaussian ones).
+alone: s_0 and the episode's length (its ``valid`` mask) from a stored expert episode, θ-tilde from the prior N(0, I)
+(or, ``offline.synthetic_latent=posterior``, from q_off on that expert episode), actions from a θ-independent Markov
+policy (``offline.explore``), next observations from p_psi (sampled for Bernoulli observations; the mean change plus
+``offline.dynamics_noise`` standard deviations for Gaussian ones).
 """
 
 from __future__ import annotations
@@ -96,7 +97,7 @@ class DeconfoundedOffline(Deconfounded):
         del key  # Split above.
         idx = jax.random.randint(k_idx, (n,), 0, jnp.maximum(state.expert_buffer.size, 1))
         data = state.expert_buffer.data
-        theta = jax.random.normal(k_latent, (n, latent))
+        theta = self.synthetic_latents(state, jax.tree.map(lambda d: d[:, idx], data), k_latent)
         explore_theta = jax.random.normal(k_explore, (n, latent))
         params = jax.lax.stop_gradient((state.encoder.params["decoder"], state.policy.params))
 
@@ -109,6 +110,20 @@ class DeconfoundedOffline(Deconfounded):
         last, (obs, action) = jax.lax.scan(body, data.obs.imitator[0, idx], jax.random.split(k_steps, data.horizon))
         obs = jnp.concatenate([obs, last[None]], axis=0)
         return SyntheticBatch(obs=obs, action=action, valid=data.valid[:, idx], latent=theta)
+
+    def synthetic_latents(self, state: TrainState, episodes: Any, key: jax.Array) -> jax.Array:
+        """θ-tilde [B, L] of B synthetic episodes: from N(0, I), or (``offline.synthetic_latent=posterior``) sampled
+        from q_off on the expert episodes ``episodes`` whose starts the synthetic episodes take."""
+        batch, latent = episodes.valid.shape[1], self.config.model.latent
+        noise = jax.random.normal(key, (batch, latent))
+        if self.config.offline.synthetic_latent == "prior":
+            return noise
+        encoder, _, _ = self.networks
+        feats = action_features(self.space, episodes.action)
+        params = jax.lax.stop_gradient(state.encoder.params["offline"])
+        mean, logvar = losses.episode_posterior(encoder, params, episodes.obs.imitator, feats, episodes.valid,
+                                                self.encoder_scale)
+        return mean + jnp.exp(0.5 * logvar) * noise
 
     def update_encoder(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
         """``offline.online_steps`` steps of q_on on the sequential ELBO (eq. 11, KL weight ``offline.online_beta``),
