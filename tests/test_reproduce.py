@@ -129,3 +129,20 @@ def test_sigterm_stops_the_running_training_with_the_report(tmp_path):
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
         proc.wait()
+
+
+def test_training_minutes_sum_every_start_of_each_finished_training(tmp_path):
+    """Per run folder: compile + chunk seconds over all starts where DONE has them, the last start's otherwise;
+    trainings without DONE (still running) are left out."""
+    runs = tmp_path / "runs"
+    for folder, algo, done in (
+        ("bandit", "bc", {"compile_s": 10.0, "run_s": 50.0, "total_compile_s": 30.0, "total_run_s": 90.0, "starts": 3}),
+        ("bandit", "dil", {"compile_s": 20.0, "run_s": 100.0}),
+        ("lunar_lander", "bc", None),
+    ):
+        (runs / folder / algo).mkdir(parents=True)
+        if done is not None:
+            (runs / folder / algo / "DONE").write_text(json.dumps(done))
+    ctx = reproduce.Context(out=tmp_path, scale=reproduce.SCALES["cpu"])
+    assert reproduce.training_minutes(ctx) == {"bandit": (30 + 90 + 20 + 100) / 60}
+    assert "Total: 4." in "\n".join(reproduce._compute_section(ctx))

@@ -17,7 +17,7 @@ from conftest import TINY
 from jaxdeconf import run
 from jaxdeconf.checkpoint import Checkpoints
 from jaxdeconf.config import build
-from jaxdeconf.train import train_algorithm
+from jaxdeconf.train import resume_timing, timing_totals, train_algorithm
 
 
 def _rows(folder):
@@ -42,9 +42,25 @@ def test_interrupted_run_resumes_exactly(tmp_path, tiny_config, monkeypatch):
         train_algorithm(config, "dil", tmp_path / "cut", progress=False)
     assert not (tmp_path / "cut" / "DONE").exists()
     assert max(r["iteration"] for r in _rows(tmp_path / "cut")) == 2
-    train_algorithm(config, "dil", tmp_path / "cut", progress=False)  # Resumes at iteration 2.
+    timing = train_algorithm(config, "dil", tmp_path / "cut", progress=False)  # Resumes at iteration 2.
     assert calls == [2, 4]
     assert _rows(tmp_path / "cut") == _rows(tmp_path / "whole")
+    # timing.jsonl: a compile per start and each kept chunk once; DONE sums them over both starts.
+    lines = [json.loads(line) for line in (tmp_path / "cut" / "timing.jsonl").read_text().splitlines()]
+    assert [r["from"] for r in lines if "compile_s" in r] == [0, 2]
+    assert [r["iteration"] for r in lines if "chunk_s" in r] == [2, 4]
+    assert timing["starts"] == 2 and timing["total_run_s"] == pytest.approx(sum(r.get("chunk_s", 0) for r in lines))
+    assert timing["total_run_s"] > timing["run_s"] > 0 and timing["total_compile_s"] > timing["compile_s"] > 0
+    assert json.loads((tmp_path / "cut" / "DONE").read_text()) == timing
+
+
+def test_resume_timing_drops_chunks_past_the_checkpoint(tmp_path):
+    path = tmp_path / "timing.jsonl"
+    path.write_text('{"from": 0, "compile_s": 3.0}\n{"iteration": 2, "chunk_s": 1.5}\n{"iteration": 4, "chunk_s": 2.0}'
+                    '\n{"itera')
+    resume_timing(path, 2)
+    assert path.read_text() == '{"from": 0, "compile_s": 3.0}\n{"iteration": 2, "chunk_s": 1.5}\n'
+    assert timing_totals(path) == {"total_compile_s": 3.0, "total_run_s": 1.5, "starts": 1}
 
 
 # --- Kills (SIGKILL) at chosen moments of a small CLI run, each followed by a rerun of the same command. ---

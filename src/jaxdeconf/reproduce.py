@@ -272,7 +272,30 @@ def write_page(ctx: Context, parts: list[Part]) -> None:
             continue
         lines += [part.section(ctx, done["numbers"]), "",
                   f"*{done['seconds'] / 60:.1f} min, finished {done['finished']}.*", ""]
+    lines += _compute_section(ctx)
     write_atomic(ctx.out / "README.md", "\n".join(lines))
+
+
+def training_minutes(ctx: Context) -> dict[str, float]:
+    """Core-minutes of each finished training under ``<out>/runs``, summed over its algorithms: compilations and
+    the chunks kept, over every start of a resumed run (runs without ``timing.jsonl``: their last start)."""
+    minutes = {}
+    for folder in sorted(p for p in (ctx.out / "runs").glob("*") if p.is_dir()):
+        done = [read_json(d, "delete it to retrain") for d in sorted(folder.glob("*/DONE"))]
+        seconds = [d.get("total_compile_s", d["compile_s"]) + d.get("total_run_s", d["run_s"]) for d in done]
+        if seconds:
+            minutes[folder.name] = sum(seconds) / 60
+    return minutes
+
+
+def _compute_section(ctx: Context) -> list[str]:
+    minutes = training_minutes(ctx)
+    if not minutes:
+        return []
+    rows = [f"| {name} | {m:.0f} |" for name, m in minutes.items()]
+    return ["## Compute", "", "Training time of the finished trainings of each run folder, summed over its algorithms "
+            "(each trains on one core; compilation and the kept chunks over every start of a resumed run), in "
+            f"core-minutes. Total: {sum(minutes.values()):.0f}.", "", "| run | core-minutes |", "|---|---|", *rows, ""]
 
 
 def _eta(parts: list[Part], ctx: Context, current: Part) -> str:

@@ -82,7 +82,7 @@ def parse_overrides(items: list[str]) -> dict[str, Any]:
 RESULT_FILES = {"config.json", "references.json", "summary.md", "summary.csv", "learning_curves.png", "p_best.png",
                 "diagnostics.png",
                 "comparison.png", "render", LOCK_NAME}
-ALGO_FILES = {"metrics.jsonl", "curves.npz", "DONE", "checkpoints", LOCK_NAME}
+ALGO_FILES = {"metrics.jsonl", "timing.jsonl", "curves.npz", "DONE", "checkpoints", LOCK_NAME}
 
 
 def _foreign(folder: pathlib.Path) -> list[str]:

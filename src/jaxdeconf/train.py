@@ -137,6 +137,32 @@ def check_rows(path: pathlib.Path, config: Config, name: str, rows: list[dict], 
         )
 
 
+def resume_timing(path: pathlib.Path, done: int) -> None:
+    """Drop from ``timing.jsonl`` the chunks past the ``done`` checkpointed iterations (and a partial last line)."""
+    lines = path.read_bytes().decode(errors="replace").splitlines() if path.exists() else []
+    keep = [line for line in lines if (row := _json_object(line)) is not None and row.get("iteration", 0) <= done]
+    if len(keep) != len(lines):
+        write_atomic(path, "".join(line + "\n" for line in keep))
+
+
+def _json_object(line: str) -> dict[str, Any] | None:
+    """One line of ``timing.jsonl`` as a dict, or None for a partial or garbage line."""
+    try:
+        row = json.loads(line)
+    except ValueError:
+        return None
+    return row if isinstance(row, dict) else None
+
+
+def timing_totals(path: pathlib.Path) -> dict[str, float]:
+    """A run's time over all its starts: compile seconds summed over starts, seconds of the kept chunks, starts."""
+    lines = path.read_text(errors="replace").splitlines() if path.exists() else []
+    rows = [row for line in lines if (row := _json_object(line)) is not None]
+    return {"total_compile_s": sum(r.get("compile_s", 0.0) for r in rows),
+            "total_run_s": sum(r.get("chunk_s", 0.0) for r in rows),
+            "starts": sum("compile_s" in r for r in rows)}
+
+
 def curves_ok(path: pathlib.Path) -> bool:
     """Whether ``curves.npz`` exists and holds every curve, readable."""
     try:
@@ -156,6 +182,7 @@ class _Loop:
     full: Any = None  # The compiled full-length chunk.
     compile_s: float = 0.0
     run_s: float = 0.0
+    last_s: float = 0.0  # The last chunk's seconds.
 
     def compile(self, states: TrainState) -> None:
         """Compile the full-length chunk (only a shorter last chunk compiles again)."""
@@ -173,7 +200,8 @@ class _Loop:
         t1 = time.perf_counter()
         states, per_iter, evals = fn(states)
         jax.block_until_ready(states)
-        self.run_s += time.perf_counter() - t1
+        self.last_s = time.perf_counter() - t1
+        self.run_s += self.last_s
         return states, length, self.layout.to_host(per_iter), self.layout.to_host(evals)
 
 
@@ -220,17 +248,20 @@ def train_algorithm(
         states = ckpt.restore(done, init) if done else init
         if primary:
             resume_metrics(folder / "metrics.jsonl", config, name, done)
+            resume_timing(folder / "timing.jsonl", done)
         loop = _Loop(algo, config, layout)
         finished = done == config.train.iterations and curves_ok(folder / "curves.npz")
         if not finished:  # A run killed between its last checkpoint and DONE has nothing left to compile.
             loop.compile(states)
+            if primary:
+                append_lines(folder / "timing.jsonl", [json.dumps({"from": done, "compile_s": loop.compile_s})])
             _train_loop(loop, ckpt, states, done, name, folder, progress and primary, position)
             sync(f"{folder}: trained")
             if not curves_ok(folder / "curves.npz"):
                 _recompute_curves(loop, ckpt, init, folder)
     finally:
         ckpt.close()
-    timing = {"compile_s": loop.compile_s, "run_s": loop.run_s}
+    timing = {"compile_s": loop.compile_s, "run_s": loop.run_s, **timing_totals(folder / "timing.jsonl")}
     if primary:
         write_atomic(folder / "DONE", json.dumps(timing) + "\n")
     sync(f"{folder}: done")
@@ -252,6 +283,7 @@ def _train_loop(loop: _Loop, ckpt: Checkpoints, states: TrainState, done: int, n
         done += length
         if is_primary():  # The one process that writes results; every process saves its shards of the checkpoint.
             append_lines(folder / "metrics.jsonl", [dumps_row(r) for r in rows])
+            append_lines(folder / "timing.jsonl", [json.dumps({"iteration": done, "chunk_s": loop.last_s})])
             if done == t.iterations:
                 _save_curves(folder, evals)  # Before the final checkpoint: a run with that checkpoint has its curves.
         sync(f"{folder}: chunk {done}")
