@@ -78,13 +78,24 @@ def append_lines(path: pathlib.Path, lines: list[str]) -> None:
         os.close(fd)
 
 
-def parse_row(line: str) -> dict[str, Any] | None:
-    """A metrics row from one line (null read back as NaN), or None for a partial or garbage line."""
+def read_lines(path: pathlib.Path) -> list[str]:
+    """The lines of a JSON-lines file (none if it does not exist; undecodable bytes replaced)."""
+    return path.read_bytes().decode(errors="replace").splitlines() if path.exists() else []
+
+
+def parse_object(line: str) -> dict[str, Any] | None:
+    """A JSON object from one line, or None for a partial or garbage line."""
     try:
         row = json.loads(line)
     except ValueError:
         return None
-    if not isinstance(row, dict) or not isinstance(row.get("iteration"), int) or not isinstance(row.get("seed"), int):
+    return row if isinstance(row, dict) else None
+
+
+def parse_row(line: str) -> dict[str, Any] | None:
+    """A metrics row from one line (null read back as NaN), or None for a partial or garbage line."""
+    row = parse_object(line)
+    if row is None or not isinstance(row.get("iteration"), int) or not isinstance(row.get("seed"), int):
         return None
     return {k: math.nan if v is None else v for k, v in row.items()}
 
@@ -92,10 +103,7 @@ def parse_row(line: str) -> dict[str, Any] | None:
 def read_rows(path: pathlib.Path) -> list[dict[str, Any]]:
     """The readable rows of a JSON-lines metrics file (a partial last line, what a kill mid-append leaves, is
     skipped)."""
-    if not path.exists():
-        return []
-    lines = path.read_bytes().decode(errors="replace").splitlines()
-    return [row for row in map(parse_row, lines) if row is not None]
+    return [row for row in map(parse_row, read_lines(path)) if row is not None]
 
 
 def read_json(path: pathlib.Path, recover: str) -> Any:

@@ -21,7 +21,15 @@ from jaxdeconf.algos.base import Algorithm, TrainState
 from jaxdeconf.checkpoint import Checkpoints
 from jaxdeconf.config import Config, ConfigError
 from jaxdeconf.envs import make
-from jaxdeconf.files import append_lines, dumps_row, parse_row, remove_temporaries, write_atomic
+from jaxdeconf.files import (
+    append_lines,
+    dumps_row,
+    parse_object,
+    parse_row,
+    read_lines,
+    remove_temporaries,
+    write_atomic,
+)
 from jaxdeconf.sharding import SeedLayout, is_primary, seed_layout, sync
 
 CURVES = ("p_best_online", "p_best_expert")  # Every run's curves.npz holds these; any other array output also goes
@@ -118,7 +126,7 @@ def resume_metrics(path: pathlib.Path, config: Config, name: str, done: int) -> 
     lines are dropped by an atomic rewrite, never in place; rows missing before ``done`` are an error, since nothing
     can recompute them.
     """
-    lines = path.read_bytes().decode(errors="replace").splitlines() if path.exists() else []
+    lines = read_lines(path)
     keep = [line for line in lines if (row := parse_row(line)) is not None and row["iteration"] <= done]
     check_rows(path, config, name, [parse_row(line) for line in keep], done)
     if len(keep) != len(lines):
@@ -139,25 +147,15 @@ def check_rows(path: pathlib.Path, config: Config, name: str, rows: list[dict], 
 
 def resume_timing(path: pathlib.Path, done: int) -> None:
     """Drop from ``timing.jsonl`` the chunks past the ``done`` checkpointed iterations (and a partial last line)."""
-    lines = path.read_bytes().decode(errors="replace").splitlines() if path.exists() else []
-    keep = [line for line in lines if (row := _json_object(line)) is not None and row.get("iteration", 0) <= done]
+    lines = read_lines(path)
+    keep = [line for line in lines if (row := parse_object(line)) is not None and row.get("iteration", 0) <= done]
     if len(keep) != len(lines):
         write_atomic(path, "".join(line + "\n" for line in keep))
 
 
-def _json_object(line: str) -> dict[str, Any] | None:
-    """One line of ``timing.jsonl`` as a dict, or None for a partial or garbage line."""
-    try:
-        row = json.loads(line)
-    except ValueError:
-        return None
-    return row if isinstance(row, dict) else None
-
-
 def timing_totals(path: pathlib.Path) -> dict[str, float]:
     """A run's time over all its starts: compile seconds summed over starts, seconds of the kept chunks, starts."""
-    lines = path.read_text(errors="replace").splitlines() if path.exists() else []
-    rows = [row for line in lines if (row := _json_object(line)) is not None]
+    rows = [row for line in read_lines(path) if (row := parse_object(line)) is not None]
     return {"total_compile_s": sum(r.get("compile_s", 0.0) for r in rows),
             "total_run_s": sum(r.get("chunk_s", 0.0) for r in rows),
             "starts": sum("compile_s" in r for r in rows)}
