@@ -267,3 +267,18 @@ def test_training_latents_current_and_final():
     final = training_latents(mean, valid, "final")
     np.testing.assert_array_equal(final[:, 0, 0], [4.0] * 4)
     np.testing.assert_array_equal(final[:, 1, 0], [7.0] * 4)
+
+
+def test_training_latents_random_step_draws_one_valid_step_per_episode():
+    """"random_step": every step of an episode gets the mean at one of its valid steps (episode 0 runs 3 steps, so
+    never its 4th), drawn uniformly per episode: over many keys each valid step is drawn about equally often."""
+    from jaxdeconf.algos.dil import training_latents
+
+    mean = jnp.arange(4 * 2 * 1, dtype=jnp.float32).reshape(4, 2, 1)  # mean[t, b] = 2t + b
+    valid = jnp.array([[1, 1], [1, 1], [1, 1], [0, 1]], bool)
+    keys = jax.random.split(jax.random.key(0), 4000)
+    draws = jax.vmap(lambda k: training_latents(mean, valid, "random_step", k))(keys)
+    assert bool(jnp.all(draws == draws[:, :1]))  # Constant over the episode.
+    steps = np.asarray((draws[:, 0, :, 0] - jnp.arange(2)) / 2).astype(int)  # The drawn step per episode.
+    np.testing.assert_allclose(np.bincount(steps[:, 0], minlength=4) / 4000, [1 / 3, 1 / 3, 1 / 3, 0], atol=0.03)
+    np.testing.assert_allclose(np.bincount(steps[:, 1], minlength=4) / 4000, [0.25] * 4, atol=0.03)

@@ -62,7 +62,7 @@ def test_cached_latents_equal_per_batch_encoding(tiny_config):
     state = algo.init(jax.random.key(0))
     state, _ = algo.collect_expert(state, jax.random.key(1))
     state = state.replace(expert_buffer=buffer_add(state.expert_buffer, state.expert_buffer.data))
-    context = algo.policy_context(state)
+    context = algo.policy_context(state, jax.random.key(2))
     assert context is not None  # 8 episodes <= batch 4 x 2 steps: the cache is used.
     idx = jnp.array([5, 0, 3, 1])
     batch = jax.tree.map(lambda d: d[:, idx], state.expert_buffer.data)

@@ -13,7 +13,7 @@ from jaxdeconf.envs import parse_bool
 ENCODERS = ("gru", "evidence")
 WEIGHTINGS = ("sum", "group_mean")  # losses.WEIGHTINGS (not imported: this module stays free of JAX).
 GROUP_LIKELIHOODS = ("declared", "gaussian")
-POLICY_LATENTS = ("current", "final")
+POLICY_LATENTS = ("current", "final", "random_step")
 DISC_INPUTS = ("next", "transition")
 GAIL_REWARDS = ("discriminator", "env")
 EXPLORERS = ("uniform", "policy")
@@ -58,8 +58,9 @@ class ModelConfig:
     # Each group's likelihood: "declared" (the env's: e.g. Bernoulli for a ±1 indicator) or "gaussian" for all.
     group_likelihood: str = _field("declared", GROUP_LIKELIHOODS)
     # The θ-hat dil's policy is cloned on, at every step of an expert episode: "current" (q_phi's posterior mean at
-    # that step, the paper's practical choice) or "final" (the posterior mean after the whole episode, the θ-hat_H of
-    # the paper's derivation). Online the policy always reads the current posterior mean.
+    # that step, the paper's practical choice), "final" (the posterior mean after the whole episode, the θ-hat_H of
+    # the paper's derivation) or "random_step" (the posterior mean at one step of the episode drawn uniformly each
+    # iteration). Online the policy always reads the current posterior mean.
     policy_latent: str = _field("current", POLICY_LATENTS)
 
 

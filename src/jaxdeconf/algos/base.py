@@ -151,10 +151,10 @@ class Algorithm:
         """
         raise NotImplementedError
 
-    def policy_context(self, state: TrainState) -> jax.Array | None:
+    def policy_context(self, state: TrainState, key: jax.Array) -> jax.Array | None:
         """Per-episode inputs [T, capacity, ...] computed once for the whole expert buffer before the policy steps
-        (what stays fixed while the policy trains), or None."""
-        del state  # Unused.
+        (what stays fixed while the policy trains; ``key`` for any draw it makes), or None."""
+        del state, key  # Unused.
         return None
 
     def update_encoder(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
@@ -185,7 +185,7 @@ class Algorithm:
     def update_policy(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
         """``policy_steps`` BC steps on batches of whole expert episodes."""
         grad_fn = jax.value_and_grad(self.policy_loss)
-        context = self.policy_context(state)
+        context = self.policy_context(state, jax.random.fold_in(key, 1))  # Leaves the steps' keys as they were.
 
         def step(learner: Learner, step_key: jax.Array) -> tuple[Learner, jax.Array]:
             idx = buffer_indices(state.expert_buffer, step_key, self.config.train.batch_size)

@@ -159,14 +159,16 @@ class Deconfounded(Algorithm):
         """q_phi's posterior means along ``traj``."""
         return self.posterior_means(state, traj)
 
-    def policy_context(self, state: TrainState) -> jax.Array | None:
+    def policy_context(self, state: TrainState, key: jax.Array) -> jax.Array | None:
         """The encoder is frozen during the policy steps, so when the policy steps would encode at least as many
-        episodes as the buffer holds, encoding the whole buffer once gives the same latents for less work."""
-        t = self.config.train
-        if t.buffer_episodes > t.batch_size * t.policy_steps:
+        episodes as the buffer holds, encoding the whole buffer once gives the same latents for less work.
+        ``random_step`` always encodes the buffer once: its draw of a step per episode is made here, once per
+        iteration, from ``key``."""
+        t, which = self.config.train, self.config.model.policy_latent
+        if which != "random_step" and t.buffer_episodes > t.batch_size * t.policy_steps:
             return None
         data = state.expert_buffer.data
-        return training_latents(self.posterior_means(state, data), data.valid, self.config.model.policy_latent)
+        return training_latents(self.posterior_means(state, data), data.valid, which, key)
 
     def policy_outputs(
         self, policy_params: Any, state: TrainState, traj: Trajectory, context: jax.Array | None = None
@@ -178,11 +180,15 @@ class Deconfounded(Algorithm):
         return policy.apply(policy_params, traj.obs.imitator[: traj.horizon], context)
 
 
-def training_latents(mean: jax.Array, valid: jax.Array, which: str) -> jax.Array:
+def training_latents(mean: jax.Array, valid: jax.Array, which: str, key: jax.Array | None = None) -> jax.Array:
     """The θ-hat [T, B, L] the policy is cloned on from posterior means [T, B, L] along episodes with mask [T, B]:
-    ``"current"`` keeps each step's mean; ``"final"`` gives every step the mean at the episode's last valid step."""
+    ``"current"`` keeps each step's mean; ``"final"`` gives every step the mean at the episode's last valid step;
+    ``"random_step"`` gives every step the mean at one valid step of the episode drawn uniformly with ``key``, so the
+    policy learns the expert's action under beliefs of every sharpness the encoder produces, not only the sharpest
+    (``final``) or only the ones the expert's own progress pairs them with (``current``)."""
     if which == "current":
         return mean
     last = jnp.maximum(jnp.sum(valid, axis=0) - 1, 0)
-    final = jnp.take_along_axis(mean, last[None, :, None], axis=0)
-    return jnp.broadcast_to(final, mean.shape)
+    step = last if which == "final" else jax.random.randint(key, last.shape, 0, last + 1)
+    picked = jnp.take_along_axis(mean, step[None, :, None], axis=0)
+    return jnp.broadcast_to(picked, mean.shape)
