@@ -1,0 +1,89 @@
+"""Whether dil's shortfall is its belief or its policy: the cloned policy online with the best θ-hat there is.
+
+    python experiments/fixed_latent.py results/half_cheetah-cpu [--seed 0] [--episodes 48]
+
+Restores one seed's last ``dil`` checkpoint from a results folder and rolls out, from the same starts and θ, (1) the
+expert, (2) the cloned policy π_η(a | s, θ-hat) with θ-hat held fixed at the posterior mean after the expert's own
+episode (the belief the policy could at best have), and (3) the imitator as deployed, reading its own online belief
+(Algorithm 2). Prints each one's mean return and the env's per-step
+extras averaged over the episodes at a few steps. When (2) is no better than (3), better inference cannot close the
+gap: the policy's cloning is what falls short.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdeconf.actors import ExpertActor
+from jaxdeconf.config import ConfigError
+from jaxdeconf.data import rollout
+from jaxdeconf.policy import load_state
+
+STEPS = (5, 10, 25, 50, 100, 150, 199)
+
+
+@dataclasses.dataclass(frozen=True)
+class FixedLatentActor:
+    """π_η on the imitator's view with a given θ-hat per episode: params {"policy": ..., "z": [B, L]}."""
+
+    policy: Any
+
+    def init_carry(self, batch: int) -> jax.Array:
+        """No recurrent state."""
+        return jnp.zeros((batch, 0), jnp.float32)
+
+    def __call__(self, params: dict[str, Any], carry: jax.Array, obs: Any, prev_action: jax.Array):
+        """The policy head on (s, z)."""
+        del prev_action  # Unused: the policy is Markov.
+        return carry, self.policy.apply(params["policy"], obs.imitator, params["z"])
+
+
+def rollouts(folder: str, seed: int, episodes: int) -> dict[str, Any]:
+    """The three rollouts' trajectories, from the same key (so the same starts and θ)."""
+    alg, states, config = load_state(folder, "dil")
+    state = jax.tree.map(lambda x: x[seed - config.seed_start], states)
+    _, _, policy = alg.networks
+
+    @jax.jit
+    def run(state: Any, key: jax.Array) -> dict[str, Any]:
+        expert, _ = rollout(alg.env, alg.env_params, ExpertActor(alg.env, alg.env_params), None, key, episodes)
+        z = alg.posterior_means(state, expert)[-1]
+        fixed, _ = rollout(alg.env, alg.env_params, FixedLatentActor(policy),
+                           {"policy": state.policy.params, "z": z}, key, episodes)
+        online, _ = rollout(alg.env, alg.env_params, alg.actor(), alg.actor_params(state), key, episodes)
+        return {"expert": expert, "policy on the expert's final belief": fixed, "dil online": online}
+
+    return {"alg": alg, **run(state, jax.random.key(seed + 1000))}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("folder")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--episodes", type=int, default=48)
+    args = p.parse_args(argv)
+    try:
+        result = rollouts(args.folder, args.seed, args.episodes)
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    del result["alg"]
+    for name, traj in result.items():
+        line = f"{name}: return {float(np.asarray(traj.reward).sum(0).mean()):.1f}"
+        for extra, values in traj.extras.items():
+            per_step = np.asarray(values).mean(1)
+            line += f"; {extra} at steps {STEPS}: " + " ".join(f"{per_step[t]:.2f}" for t in STEPS
+                                                               if t < len(per_step))
+        print(line)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
