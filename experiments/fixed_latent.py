@@ -60,7 +60,7 @@ def rollouts(folder: str, seed: int, episodes: int) -> dict[str, Any]:
         online, _ = rollout(alg.env, alg.env_params, alg.actor(), alg.actor_params(state), key, episodes)
         return {"expert": expert, "policy on the expert's final belief": fixed, "dil online": online}
 
-    return {"alg": alg, **run(state, jax.random.key(seed + 1000))}
+    return run(state, jax.random.key(seed + 1000))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -74,7 +74,6 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    del result["alg"]
     for name, traj in result.items():
         line = f"{name}: return {float(np.asarray(traj.reward).sum(0).mean()):.1f}"
         for extra, values in traj.extras.items():

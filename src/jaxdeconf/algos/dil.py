@@ -188,6 +188,8 @@ def training_latents(mean: jax.Array, valid: jax.Array, which: str, key: jax.Arr
     (``final``) or only the ones the expert's own progress pairs them with (``current``)."""
     if which == "current":
         return mean
+    if which == "random_step" and key is None:
+        raise ValueError("training_latents: policy_latent='random_step' draws a step per episode and needs a key")
     last = jnp.maximum(jnp.sum(valid, axis=0) - 1, 0)
     step = last if which == "final" else jax.random.randint(key, last.shape, 0, last + 1)
     picked = jnp.take_along_axis(mean, step[None, :, None], axis=0)
