@@ -39,6 +39,7 @@ BAD_INPUTS = [
     (["--set", "gail.gamma=1.5"], "gail.gamma=1.5 is not allowed: need a number in [0, 1]"),
     (["--set", "gail.disc_input=image"], "gail.disc_input='image' is not allowed; allowed: next, transition"),
     (["--set", "gail.reward=sparse"], "gail.reward='sparse' is not allowed; allowed: discriminator, env"),
+    (["--set", "model.bc_memory=lstm"], "model.bc_memory='lstm' is not allowed; allowed: gru, none"),
     (["--set", "gail.minibatches=5"], "gail.minibatches=5 must divide the generator's 128 episodes"),
     (["--set", "gail.nope=1"], "unknown field 'gail.nope'"),
     (["--algo", "bc,bc"], "algorithm 'bc' is given twice"),

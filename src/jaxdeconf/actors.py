@@ -51,6 +51,23 @@ class RecurrentActor:
 
 
 @dataclasses.dataclass(frozen=True)
+class MarkovActor:
+    """A Markov policy on one view (``model.bc_memory=none``): no memory, no previous action."""
+
+    policy: LatentPolicy
+    view: str
+
+    def init_carry(self, batch: int) -> jax.Array:
+        """No recurrent state."""
+        return jnp.zeros((batch, 0), jnp.float32)
+
+    def __call__(self, params: Any, carry: jax.Array, obs: Observation, prev_action: jax.Array):
+        """The head on the current observation (an empty latent)."""
+        del prev_action  # Unused.
+        return carry, self.policy.apply(params, getattr(obs, self.view), carry)
+
+
+@dataclasses.dataclass(frozen=True)
 class DeconfoundedActor:
     """Algorithm 2: update the belief q_phi with (a_{t-1}, s_t), then act with pi_eta on its mean.
 

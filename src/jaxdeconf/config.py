@@ -14,6 +14,7 @@ ENCODERS = ("gru", "evidence")
 WEIGHTINGS = ("sum", "group_mean")  # losses.WEIGHTINGS (not imported: this module stays free of JAX).
 GROUP_LIKELIHOODS = ("declared", "gaussian")
 POLICY_LATENTS = ("current", "final", "random_step")
+BC_MEMORIES = ("gru", "none")
 DISC_INPUTS = ("next", "transition")
 GAIL_REWARDS = ("discriminator", "env")
 EXPLORERS = ("uniform", "policy")
@@ -44,6 +45,10 @@ class ModelConfig:
     action_embed: int = _field(32, ">=1")  # Size of the previous-action embedding fed to the GRUs.
     gru: int = _field(500, ">=1")  # GRU hidden size of the inference model q_phi.
     bc_gru: int = _field(500, ">=1")  # GRU hidden size of the recurrent naive-BC / oracle policy.
+    # The memory of bc's network (bc, oracle, dagger): "gru" (the paper's recurrent policy over observations and
+    # previous actions) or "none" (a Markov policy on the current observation: dil's policy network without θ-hat,
+    # so the oracle's "none" is the ceiling of dil's Markov policy given the true θ).
+    bc_memory: str = _field("gru", BC_MEMORIES)
     latent: int = _field(64, ">=1")  # Latent size of theta-hat.
     # With a Gaussian observation likelihood, also feed q_phi the standardised change (s_t - s_{t-1}) / delta_scale
     # that the decoder scores: the evidence about theta is in transitions, and small ones (an engine's kick) are a few

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxdeconf import losses
-from jaxdeconf.actors import ExpertActor, RecurrentActor
+from jaxdeconf.actors import ExpertActor, MarkovActor, RecurrentActor
 from jaxdeconf.algos.base import TrainState
 from jaxdeconf.algos.bc import BehaviourCloning
 from jaxdeconf.data import Tagged, buffer_add, replay, rollout
@@ -32,7 +32,7 @@ class MixtureActor:
     t is drawn from ``fold_in(key, t)``, independent of the key that samples the action from the chosen head.
     """
 
-    imitator: RecurrentActor
+    imitator: RecurrentActor | MarkovActor
     expert: ExpertActor
 
     def init_carry(self, batch: int) -> tuple[jax.Array, jax.Array]:
