@@ -13,7 +13,7 @@ from conftest import assert_rows_close
 
 from jaxdeconf.algos import NAMES as ALGOS
 from jaxdeconf.algos.dil import Deconfounded
-from jaxdeconf.data import buffer_add, buffer_sample, replay
+from jaxdeconf.data import buffer_add, buffer_sample
 from jaxdeconf.train import build_algorithm, compiled_chunk, over_seeds, seed_keys, train_algorithm
 
 
@@ -88,22 +88,3 @@ def test_programs_call_no_lapack(tiny_config, algo):
     states = jax.eval_shape(init, keys)
     texts = [init.lower(keys).as_text(), compiled_chunk(built, 1).lower(states).as_text()]
     assert not [t for t in texts if "lapack" in t.lower()]
-
-
-def test_policy_latent_norm_standardizes_what_the_policy_reads(tiny_config):
-    """``model.policy_latent_norm``: after a policy update the stored statistics standardise the cloned-on latents
-    over the expert buffer to mean 0 and std 1 per dimension, and acting reads θ-hat the same way as training does
-    (the actor's replay along expert episodes equals ``policy_outputs`` with ``policy_latent=current``)."""
-    algo = build_algorithm(tiny_config(**{"model.policy_latent_norm": True, "train.warmup": 0}), "dil")
-    state = jax.jit(algo.init)(jax.random.key(0))
-    state, _ = jax.jit(algo.iteration)(state)
-    mean, std = (np.asarray(x) for x in state.latent_norm)
-    data = state.expert_buffer.data
-    z = np.asarray(algo.posterior_means(state, data))[np.asarray(data.valid)]
-    np.testing.assert_allclose(((z - mean) / std).mean(0), 0.0, atol=1e-4)
-    np.testing.assert_allclose(((z - mean) / std).std(0), 1.0, rtol=1e-3)
-    assert np.abs(mean).max() > 1e-3 or np.abs(std - 1).max() > 1e-3  # The statistics moved off the identity.
-    out = np.asarray(jax.jit(algo.policy_outputs)(state.policy.params, state, data))
-    acted = np.asarray(replay(algo.actor(), algo.actor_params(state), data, algo.space))
-    valid = np.asarray(data.valid)
-    np.testing.assert_allclose(acted[valid], out[valid], rtol=1e-4, atol=1e-5)

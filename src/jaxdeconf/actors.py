@@ -87,7 +87,7 @@ class DeconfoundedActor:
         return gru, jnp.zeros((batch, len(self.delta_scale)), jnp.float32), jnp.zeros((batch, 1), jnp.bool_)
 
     def __call__(self, params: dict[str, Any], carry: Any, obs: Observation, prev_action: jax.Array):
-        """params: {"encoder": ..., "policy": ...} and, with ``model.policy_latent_norm``, "latent_norm"."""
+        """params: {"encoder": ..., "policy": ...}."""
         s = obs.imitator
         if self.delta_scale is None:
             gru, enc_obs = carry, s
@@ -97,11 +97,4 @@ class DeconfoundedActor:
         x = self.encoder.apply(params["encoder"], enc_obs, prev_action, method="embed")
         gru, (mean, _) = self.encoder.apply(params["encoder"], gru, x, method="recur")
         carry = gru if self.delta_scale is None else (gru, s, jnp.ones_like(started))
-        if "latent_norm" in params:  # ``model.policy_latent_norm``: θ-hat as the policy was cloned on it.
-            mean = standardize(mean, params["latent_norm"])
         return carry, self.policy.apply(params["policy"], s, mean)
-
-
-def standardize(z: jax.Array, norm: tuple[jax.Array, jax.Array]) -> jax.Array:
-    """(z - mean) / std with a (mean, std) pair of [L] arrays."""
-    return (z - norm[0]) / norm[1]

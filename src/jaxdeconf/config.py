@@ -67,11 +67,6 @@ class ModelConfig:
     # the paper's derivation) or "random_step" (the posterior mean at one step of the episode drawn uniformly each
     # iteration). Online the policy always reads the current posterior mean.
     policy_latent: str = _field("current", POLICY_LATENTS)
-    # Standardise θ-hat for dil's policy by the mean and standard deviation of the latents it is cloned on (over the
-    # expert buffer, per dimension, refitted at each policy update and kept for acting). q_phi's posterior means can
-    # sit far from 0 and vary across episodes by a small fraction of that offset (the sequential KL fixes only the
-    # first step's scale), which a policy under weight decay reads weakly; the oracle's θ is standardised likewise.
-    policy_latent_norm: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

@@ -52,9 +52,6 @@ class TrainState:
     explore_buffer: Buffer | None  # The imitator's own episodes (dil's exploration data, gail's latest rollouts).
     key: jax.Array
     iteration: jax.Array  # int32: iterations done.
-    # dil with ``model.policy_latent_norm``: the (mean, std) [L] that standardise θ-hat for the policy, fixed at each
-    # policy update and kept for acting; None otherwise.
-    latent_norm: Any = None
 
 
 def make_optimizer(lr: float, weight_decay: float, clip: float) -> optax.GradientTransformation:

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import optax
 
 from jaxdeconf import losses
-from jaxdeconf.actors import DeconfoundedActor, standardize
+from jaxdeconf.actors import DeconfoundedActor
 from jaxdeconf.algos.base import (
     Algorithm,
     Learner,
@@ -96,13 +96,7 @@ class Deconfounded(Algorithm):
             explore_buffer=self._empty_buffer(),
             key=key,
             iteration=jnp.zeros((), jnp.int32),
-            latent_norm=(jnp.zeros(latent), jnp.ones(latent)) if self.normalizes_latent else None,
         )
-
-    @property
-    def normalizes_latent(self) -> bool:
-        """Whether the policy reads θ-hat standardised (``model.policy_latent_norm``)."""
-        return self.config.model.policy_latent_norm
 
     def actor(self) -> DeconfoundedActor:
         """Algorithm 2."""
@@ -111,8 +105,7 @@ class Deconfounded(Algorithm):
 
     def actor_params(self, state: TrainState) -> dict[str, Any]:
         """Encoder and policy parameters."""
-        params = {"encoder": state.encoder.params["encoder"], "policy": state.policy.params}
-        return {**params, "latent_norm": state.latent_norm} if self.normalizes_latent else params
+        return {"encoder": state.encoder.params["encoder"], "policy": state.policy.params}
 
     def collect_explore(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
         """The imitator's own episodes (the exploration policy is pi_eta on the current posterior mean)."""
@@ -166,25 +159,6 @@ class Deconfounded(Algorithm):
         """q_phi's posterior means along ``traj``."""
         return self.posterior_means(state, traj)
 
-    def latent_statistics(self, state: TrainState) -> tuple[jax.Array, jax.Array]:
-        """Per-dimension mean and std (floored at 1e-3) of the θ-hat the policy is cloned on, over the valid steps of
-        the expert buffer (``random_step`` draws from every step's, so it takes every step's statistics)."""
-        data = state.expert_buffer.data
-        which = "final" if self.config.model.policy_latent == "final" else "current"
-        z = training_latents(self.posterior_means(state, data), data.valid, which)
-        w = data.valid[..., None].astype(jnp.float32)
-        count = jnp.maximum(jnp.sum(w, axis=(0, 1)), 1.0)
-        mean = jnp.sum(z * w, axis=(0, 1)) / count
-        var = jnp.sum(jnp.square(z - mean) * w, axis=(0, 1)) / count
-        return mean, jnp.maximum(jnp.sqrt(var), 1e-3)
-
-    def update_policy(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
-        """The BC steps; with ``model.policy_latent_norm`` the latents' statistics are refitted first, from the
-        encoder as it is now, and kept in the state for acting."""
-        if self.normalizes_latent:
-            state = state.replace(latent_norm=self.latent_statistics(state))
-        return super().update_policy(state, key)
-
     def policy_context(self, state: TrainState, key: jax.Array) -> jax.Array | None:
         """The encoder is frozen during the policy steps, so when the policy steps would encode at least as many
         episodes as the buffer holds, encoding the whole buffer once gives the same latents for less work.
@@ -203,8 +177,6 @@ class Deconfounded(Algorithm):
         _, _, policy = self.networks
         if context is None:
             context = training_latents(self.posterior_means(state, traj), traj.valid, self.config.model.policy_latent)
-        if self.normalizes_latent:
-            context = standardize(context, state.latent_norm)
         return policy.apply(policy_params, traj.obs.imitator[: traj.horizon], context)
 
 

@@ -66,12 +66,6 @@ class DeconfoundedOffline(Deconfounded):
             iteration=jnp.zeros((), jnp.int32),
         )
 
-    @property
-    def normalizes_latent(self) -> bool:
-        """Never: pi_eta is trained inside the VAE on latents the KL to N(0, I) already scales
-        (``model.policy_latent_norm`` is dil's setting)."""
-        return False
-
     def collect_explore(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
         """None: this algorithm never acts in the environment while training."""
         del key  # Unused.
