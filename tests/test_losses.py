@@ -282,3 +282,19 @@ def test_training_latents_random_step_draws_one_valid_step_per_episode():
     steps = np.asarray((draws[:, 0, :, 0] - jnp.arange(2)) / 2).astype(int)  # The drawn step per episode.
     np.testing.assert_allclose(np.bincount(steps[:, 0], minlength=4) / 4000, [1 / 3, 1 / 3, 1 / 3, 0], atol=0.03)
     np.testing.assert_allclose(np.bincount(steps[:, 1], minlength=4) / 4000, [0.25] * 4, atol=0.03)
+
+
+def test_sample_latents_draw_one_theta_hat_per_episode_from_the_posterior():
+    """``policy_latent_draw=sample``: every step of an episode shares one draw mean + std · ε, ε ~ N(0, I); over
+    many keys the draws have the posterior's mean and standard deviation per episode and dimension."""
+    from jaxdeconf.algos.dil import sample_latents
+
+    mean = jnp.broadcast_to(jnp.array([[[0.5, -2.0], [1.0, 0.0]]]), (3, 2, 2))  # [T, B, L], constant over T.
+    std = jnp.broadcast_to(jnp.array([[[0.1, 1.0], [2.0, 0.5]]]), (3, 2, 2))
+    draws = jax.vmap(lambda k: sample_latents(mean, std, k))(jax.random.split(jax.random.key(0), 8000))
+    assert bool(jnp.all(draws == draws[:, :1]))  # One draw per episode.
+    np.testing.assert_allclose(draws[:, 0].mean(0), mean[0], atol=0.06)
+    np.testing.assert_allclose(draws[:, 0].std(0), std[0], rtol=0.04)
+    # Episodes and dimensions draw independently.
+    flat = np.asarray((draws[:, 0] - mean[0]) / std[0]).reshape(8000, 4)
+    np.testing.assert_allclose(np.corrcoef(flat.T), np.eye(4), atol=0.05)

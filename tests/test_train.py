@@ -71,6 +71,27 @@ def test_cached_latents_equal_per_batch_encoding(tiny_config):
     np.testing.assert_allclose(cached, direct, rtol=1e-5, atol=1e-6)
 
 
+def test_sampled_policy_latents_scatter_around_the_posterior_mean(tiny_config):
+    """``policy_latent_draw=sample`` clones on θ-hat ~ q_phi: one draw per episode and key, different across keys,
+    averaging to the latent the ``mean`` setting clones on, with q_phi's own posterior spread."""
+    mean_algo = build_algorithm(tiny_config(**{"model.policy_latent": "final"}), "dil")
+    algo = build_algorithm(tiny_config(**{"model.policy_latent": "final", "model.policy_latent_draw": "sample"}), "dil")
+    state = algo.init(jax.random.key(0))
+    state, _ = algo.collect_expert(state, jax.random.key(1))
+    data = state.expert_buffer.data
+    centre = mean_algo.training_context(state, data)
+    draws = jax.vmap(lambda k: algo.policy_context(state, k))(jax.random.split(jax.random.key(3), 2000))
+    assert bool(jnp.all(draws == draws[:, :1]))  # One θ-hat per episode, shared by its steps.
+    assert not bool(jnp.allclose(draws[0], draws[1]))
+    _, logvar = algo.posterior(state, data)
+    last = jnp.maximum(jnp.sum(data.valid, axis=0) - 1, 0)
+    std = jnp.exp(0.5 * logvar[last, jnp.arange(last.shape[0])])
+    np.testing.assert_allclose(draws[:, 0].mean(0), centre[0], atol=float(4 * std.max() / np.sqrt(2000)))
+    np.testing.assert_allclose(draws[:, 0].std(0), std, rtol=0.1)
+    with pytest.raises(ValueError, match="needs a key"):
+        algo.training_context(state, data)
+
+
 def test_seed_keys_follow_seed_start(tiny_config):
     config = dataclasses.replace(tiny_config(seeds=2), seed_start=5)
     np.testing.assert_array_equal(jax.random.key_data(seed_keys(config)[1]), jax.random.key_data(jax.random.key(6)))

@@ -14,6 +14,7 @@ ENCODERS = ("gru", "evidence")
 WEIGHTINGS = ("sum", "group_mean")  # losses.WEIGHTINGS (not imported: this module stays free of JAX).
 GROUP_LIKELIHOODS = ("declared", "gaussian")
 POLICY_LATENTS = ("current", "final", "random_step")
+LATENT_DRAWS = ("mean", "sample")
 BC_MEMORIES = ("gru", "none")
 DISC_INPUTS = ("next", "transition")
 GAIL_REWARDS = ("discriminator", "env")
@@ -67,6 +68,11 @@ class ModelConfig:
     # the paper's derivation) or "random_step" (the posterior mean at one step of the episode drawn uniformly each
     # iteration). Online the policy always reads the current posterior mean.
     policy_latent: str = _field("current", POLICY_LATENTS)
+    # What of q_phi's posterior at that step the policy is cloned on: "mean" (the reference code's) or "sample" (a
+    # draw of theta-hat ~ q_phi, as in the paper's Algorithm 1: one draw per expert episode and iteration, so a
+    # dimension q_phi leaves near the prior is noise the policy learns to ignore rather than a per-episode code it can
+    # memorise the buffer's actions by). Online the policy always reads the current posterior mean.
+    policy_latent_draw: str = _field("mean", LATENT_DRAWS)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -147,13 +147,17 @@ class Deconfounded(Algorithm):
         learner, metrics = jax.lax.scan(step, state.encoder, jax.random.split(key, t.encoder_steps))
         return state.replace(encoder=learner), jax.tree.map(jnp.mean, metrics)
 
-    def posterior_means(self, state: TrainState, traj: Trajectory) -> jax.Array:
-        """Posterior means [T, B, L] of q_phi along ``traj``, detached: the policy never trains the encoder."""
+    def posterior(self, state: TrainState, traj: Trajectory) -> tuple[jax.Array, jax.Array]:
+        """Posterior means and log-variances [T, B, L] of q_phi along ``traj``, detached: the policy never trains the
+        encoder."""
         encoder, _, _ = self.networks
         obs = self.encoder_obs(traj.obs.imitator[: traj.horizon])
         prev = losses.prev_actions(action_features(self.space, traj.action))
-        mean, _ = losses.encoder_scan(encoder, state.encoder.params["encoder"], obs, prev)
-        return jax.lax.stop_gradient(mean)
+        return jax.lax.stop_gradient(losses.encoder_scan(encoder, state.encoder.params["encoder"], obs, prev))
+
+    def posterior_means(self, state: TrainState, traj: Trajectory) -> jax.Array:
+        """Posterior means [T, B, L] of q_phi along ``traj``, detached."""
+        return self.posterior(state, traj)[0]
 
     def belief(self, state: TrainState, traj: Trajectory) -> jax.Array:
         """q_phi's posterior means along ``traj``."""
@@ -162,21 +166,35 @@ class Deconfounded(Algorithm):
     def policy_context(self, state: TrainState, key: jax.Array) -> jax.Array | None:
         """The encoder is frozen during the policy steps, so when the policy steps would encode at least as many
         episodes as the buffer holds, encoding the whole buffer once gives the same latents for less work.
-        ``random_step`` always encodes the buffer once: its draw of a step per episode is made here, once per
-        iteration, from ``key``."""
-        t, which = self.config.train, self.config.model.policy_latent
-        if which != "random_step" and t.buffer_episodes > t.batch_size * t.policy_steps:
+        ``random_step`` and ``sample`` always encode the buffer once: their draws (a step, a θ-hat per episode) are
+        made here, once per iteration, from ``key``."""
+        t, m = self.config.train, self.config.model
+        drawn = m.policy_latent == "random_step" or m.policy_latent_draw == "sample"
+        if not drawn and t.buffer_episodes > t.batch_size * t.policy_steps:
             return None
         data = state.expert_buffer.data
-        return training_latents(self.posterior_means(state, data), data.valid, which, key)
+        return self.training_context(state, data, key)
+
+    def training_context(self, state: TrainState, traj: Trajectory, key: jax.Array | None = None) -> jax.Array:
+        """The θ-hat [T, B, L] the policy is cloned on along expert episodes ``traj``: ``model.policy_latent`` picks
+        the step of q_phi's posterior, ``model.policy_latent_draw`` its mean or a draw from it (``sample_latents``)."""
+        m = self.config.model
+        mean, logvar = self.posterior(state, traj)
+        picked = training_latents(mean, traj.valid, m.policy_latent, key)
+        if m.policy_latent_draw == "mean":
+            return picked
+        if key is None:
+            raise ValueError("training_context: policy_latent_draw='sample' draws a θ-hat per episode and needs a key")
+        std = jnp.exp(0.5 * training_latents(logvar, traj.valid, m.policy_latent, key))
+        return sample_latents(picked, std, jax.random.fold_in(key, 1))
 
     def policy_outputs(
         self, policy_params: Any, state: TrainState, traj: Trajectory, context: jax.Array | None = None
     ) -> jax.Array:
-        """pi_eta(a_t | s_t, θ-hat) with θ-hat from the frozen (detached) encoder (``training_latents``)."""
+        """pi_eta(a_t | s_t, θ-hat) with θ-hat from the frozen (detached) encoder (``training_context``)."""
         _, _, policy = self.networks
         if context is None:
-            context = training_latents(self.posterior_means(state, traj), traj.valid, self.config.model.policy_latent)
+            context = self.training_context(state, traj)
         return policy.apply(policy_params, traj.obs.imitator[: traj.horizon], context)
 
 
@@ -194,3 +212,10 @@ def training_latents(mean: jax.Array, valid: jax.Array, which: str, key: jax.Arr
     step = last if which == "final" else jax.random.randint(key, last.shape, 0, last + 1)
     picked = jnp.take_along_axis(mean, step[None, :, None], axis=0)
     return jnp.broadcast_to(picked, mean.shape)
+
+
+def sample_latents(mean: jax.Array, std: jax.Array, key: jax.Array) -> jax.Array:
+    """θ-hat = mean + std · ε [T, B, L] with one ε ~ N(0, I) per episode (axis 1), shared by the episode's steps: with
+    ``final`` latents it is one draw of θ-hat_H ~ q_phi(θ | τ) per episode, as in Algorithm 1."""
+    noise = jax.random.normal(key, (1, *mean.shape[1:]), mean.dtype)
+    return mean + std * noise
