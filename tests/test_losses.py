@@ -171,6 +171,19 @@ def test_deconfounded_actor_matches_teacher_forced_posterior(deltas, kind):
         np.testing.assert_allclose(out, expected[t], rtol=1e-5, atol=1e-5)
 
 
+def test_early_fusion_policy_is_the_markov_oracle_network_on_obs_and_theta_hat():
+    """``policy_fusion=early`` reads θ-hat beside the observation at the input: with the same parameters it is the
+    Markov oracle's network (``bc_memory=none``: an empty latent) applied to [obs, θ-hat]; "late" is not."""
+    obs, z = jax.random.normal(jax.random.key(0), (6, 3)), jax.random.normal(jax.random.key(1), (6, 2))
+    early, markov = LatentPolicy(8, 4, "early"), LatentPolicy(8, 4)
+    params = early.init(jax.random.key(2), obs, z)
+    joined, empty = jnp.concatenate([obs, z], axis=-1), jnp.zeros((6, 0))
+    np.testing.assert_allclose(early.apply(params, obs, z), markov.apply(params, joined, empty), rtol=1e-6)
+    late_params = LatentPolicy(8, 4).init(jax.random.key(2), obs, z)
+    assert late_params["params"]["MLP_0"]["Dense_0"]["kernel"].shape[0] == 3  # Late: the first layer sees obs only.
+    assert params["params"]["MLP_0"]["Dense_0"]["kernel"].shape[0] == 5
+
+
 def test_evidence_encoder_posterior_is_the_product_of_its_factors():
     """Hand-derived: N(0, 1) x N(2, 1/1) x N(-1, 1/2) has precision 4 and mean (0 + 2 - 2) / 4 = 0;
     N(0, 1) x N(1, 1/3) x (a zero-precision factor) has precision 4 and mean 3 / 4."""

@@ -15,6 +15,7 @@ WEIGHTINGS = ("sum", "group_mean")  # losses.WEIGHTINGS (not imported: this modu
 GROUP_LIKELIHOODS = ("declared", "gaussian")
 POLICY_LATENTS = ("current", "final", "random_step")
 LATENT_DRAWS = ("mean", "sample")
+FUSIONS = ("late", "early")
 BC_MEMORIES = ("gru", "none")
 DISC_INPUTS = ("next", "transition")
 GAIL_REWARDS = ("discriminator", "env")
@@ -73,6 +74,9 @@ class ModelConfig:
     # dimension q_phi leaves near the prior is noise the policy learns to ignore rather than a per-episode code it can
     # memorise the buffer's actions by). Online the policy always reads the current posterior mean.
     policy_latent_draw: str = _field("mean", LATENT_DRAWS)
+    # Where dil's policy reads θ-hat (``models.LatentPolicy``): "late", after the observation's own MLP (the
+    # reference code's), or "early", beside the observation at the input, where the oracle's θ sits in its view.
+    policy_fusion: str = _field("late", FUSIONS)
 
 
 @dataclasses.dataclass(frozen=True)

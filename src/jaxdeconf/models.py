@@ -228,11 +228,18 @@ class LatentPolicy(nn.Module):
 
     width: int
     out_size: int
+    # Where theta-hat joins the observation: "late" (after the observation's own MLP, the reference code's) or "early"
+    # (beside the observation at the input, as the oracle's θ is part of its view), so the first layer can form
+    # differences such as the speed minus the target or the goal minus the position.
+    fusion: str = "late"
 
     @nn.compact
     def __call__(self, obs: jax.Array, z: jax.Array) -> jax.Array:
         """Head output (logits, or mean and log-std) for any leading shape."""
-        h = jnp.concatenate([MLP((self.width, self.width))(obs), z], axis=-1)
+        if self.fusion == "early":
+            h = MLP((self.width, self.width))(jnp.concatenate([obs, z], axis=-1))
+        else:
+            h = jnp.concatenate([MLP((self.width, self.width))(obs), z], axis=-1)
         return nn.Dense(self.out_size)(MLP((self.width, self.width))(h))
 
 

@@ -59,7 +59,7 @@ class Deconfounded(Algorithm):
             Encoder(m.width, m.action_embed, m.gru, m.latent) if m.encoder == "gru"
             else EvidenceEncoder(m.width, m.action_embed, m.latent),
             Decoder(m.width, m.action_embed, size),
-            LatentPolicy(m.width, head_size(self.space)),
+            LatentPolicy(m.width, head_size(self.space), m.policy_fusion),
         )
 
     @property
