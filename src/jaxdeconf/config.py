@@ -72,10 +72,12 @@ class ModelConfig:
     # What of q_phi's posterior at that step the policy is cloned on: "mean" (the reference code's) or "sample" (a
     # draw of theta-hat ~ q_phi, as in the paper's Algorithm 1: one draw per expert episode and iteration, so a
     # dimension q_phi leaves near the prior is noise the policy learns to ignore rather than a per-episode code it can
-    # memorise the buffer's actions by). Online the policy always reads the current posterior mean.
+    # memorise the buffer's actions by; on the MuJoCo envs it did no better, docs/results.md). Online the policy always
+    # reads the current posterior mean.
     policy_latent_draw: str = _field("mean", LATENT_DRAWS)
     # Where dil's policy reads θ-hat (``models.LatentPolicy``): "late", after the observation's own MLP (the
     # reference code's), or "early", beside the observation at the input, where the oracle's θ sits in its view.
+    # dil_offline's pi_eta is the same network and follows this too.
     policy_fusion: str = _field("late", FUSIONS)
 
 
