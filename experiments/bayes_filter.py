@@ -91,6 +91,9 @@ def main(argv: list[str] | None = None) -> int:
         if config.env != "half_cheetah":
             raise ConfigError(f"{args.folder} is a {config.env} run; this diagnostic is for half_cheetah")
         has_dil = "dil" in config.algos and (pathlib.Path(args.folder) / "dil" / "DONE").exists()
+        if not config.seed_start <= args.seed < config.seed_start + config.seeds:
+            raise ConfigError(f"--seed {args.seed} is not in {args.folder}; it holds seeds {config.seed_start} to "
+                              f"{config.seed_start + config.seeds - 1}")
         alg, states, _ = load_state(args.folder, "dil") if has_dil else (build_algorithm(config, "bc"), None, None)
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
