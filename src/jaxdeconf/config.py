@@ -342,8 +342,9 @@ PRESETS: dict[str, dict[str, dict[str, Any]]] = {
         # dil's policy is cloned on the whole expert episode's posterior mean: with the current step's, it learnt to
         # hold whatever speed it reached. The indicator is scored as a Gaussian like the body: its declared Bernoulli
         # likelihood, with the groups weighted as the reference code does, did worse (docs/results.md, the ablation).
+        # q_phi is the product-of-factors encoder: the GRU's belief faded on the imitator's own episodes.
         "cpu": {**_locomotion_cpu(horizon=200, prediction_steps=10, anneal=8),  # 63 of 300 iterations, scaled to 40.
-                "model.group_likelihood": "gaussian", "model.policy_latent": "final"},
+                "model.group_likelihood": "gaussian", "model.policy_latent": "final", "model.encoder": "evidence"},
         # The paper's configuration (for a GPU): GRU 500, latent 64, K = 10, 2000 episodes (2e6 transitions).
         "paper": {**_locomotion_paper(latent=64, prediction_steps=10, buffer_episodes=2000, anneal=63),
                   "model.group_likelihood": "gaussian"},
