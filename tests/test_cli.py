@@ -84,7 +84,7 @@ BAD_INPUTS = [
     (["--set", "train.iterations=2.5"], "train.iterations='2.5' is not a valid int"),
     (["--set", "model.gru=abc"], "model.gru='abc' is not a valid int"),
     (["--set", "model.gru=0"], "model.gru=0 is not allowed: need a positive integer"),
-    (["--set", "model.encoder=lstm"], "model.encoder='lstm' is not allowed; allowed: gru, evidence"),
+    (["--set", "model.encoder=lstm"], "model.encoder='lstm' is not allowed; allowed: gru, evidence, filter"),
     (["--set", "model.encoder_deltas=maybe"], "model.encoder_deltas='maybe' is not a boolean"),
     (["--set", "seed_start=-1"], "seed_start=-1 is not allowed: need an integer >= 0"),
     (["--set", f"seed_start={2**32}"], "seed_start=4294967296 is too large"),

@@ -12,7 +12,7 @@ from jaxdeconf.envs.base import ActionSpace, Observation, ObsGroup
 
 from jaxdeconf import losses
 from jaxdeconf.actors import DeconfoundedActor
-from jaxdeconf.models import Decoder, Encoder, EvidenceEncoder, LatentPolicy, RecurrentPolicy, log_prob
+from jaxdeconf.models import Decoder, Encoder, EvidenceEncoder, FilterEncoder, LatentPolicy, RecurrentPolicy, log_prob
 
 HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 
@@ -66,8 +66,13 @@ def test_sequential_kl_prior_is_previous_posterior():
     np.testing.assert_allclose(kl, [0.5, 0.0, 2.0], atol=1e-6)
 
 
+def _encoder(kind, latent):
+    return Encoder(8, 4, 6, latent) if kind == "gru" else {"evidence": EvidenceEncoder, "filter": FilterEncoder}[kind](
+        8, 4, latent)
+
+
 def _tiny_models(enc_obs_size=1, kind="gru"):
-    encoder = Encoder(8, 4, 6, 3) if kind == "gru" else EvidenceEncoder(8, 4, 3)
+    encoder = _encoder(kind, 3)
     decoder = Decoder(8, 4, 1)
     k1, k2 = jax.random.split(jax.random.key(0))
     obs, act, z = jnp.zeros((1, 1)), jnp.zeros((1, 5)), jnp.zeros((1, 3))
@@ -86,7 +91,7 @@ def _batch(T=7, B=3, seed=1):
 @pytest.mark.parametrize(("steps", "likelihood", "deltas", "kind"),
                          [(1, "bernoulli", False, "gru"), (3, "bernoulli", False, "gru"),
                           (3, "gaussian", False, "gru"), (3, "gaussian", True, "gru"),
-                          (3, "gaussian", True, "evidence")])
+                          (3, "gaussian", True, "evidence"), (3, "gaussian", True, "filter")])
 def test_elbo_scan_matches_plain_loop(steps, likelihood, deltas, kind):
     encoder, decoder, params = _tiny_models(enc_obs_size=2 if deltas else 1, kind=kind)
     obs, feats, valid = _batch()
@@ -150,11 +155,11 @@ def test_prediction_mask_counts_steps_left():
     np.testing.assert_array_equal(count[:, 0], [3, 3, 3, 2, 1])
 
 
-@pytest.mark.parametrize(("deltas", "kind"), [(False, "gru"), (True, "gru"), (True, "evidence")])
+@pytest.mark.parametrize(("deltas", "kind"), [(False, "gru"), (True, "gru"), (True, "evidence"), (True, "filter")])
 def test_deconfounded_actor_matches_teacher_forced_posterior(deltas, kind):
     """Algorithm 2 step by step (what acts online) gives the policy outputs that training computes with scans."""
     d, B, T = 3, 4, 6
-    encoder = Encoder(8, 4, 6, 2) if kind == "gru" else EvidenceEncoder(8, 4, 2)
+    encoder = _encoder(kind, 2)
     policy = LatentPolicy(8, 5)
     scale = jnp.array([0.5, 1.0, 2.0]) if deltas else None
     k1, k2, k3, k4 = jax.random.split(jax.random.key(7), 4)
@@ -199,6 +204,30 @@ def test_evidence_encoder_posterior_is_the_product_of_its_factors():
     obs = jax.random.normal(jax.random.key(1), (20, 4, 3))
     prev = jax.nn.one_hot(jax.random.randint(jax.random.key(2), (20, 4), 0, 5), 5)
     _, logvar = losses.encoder_scan(encoder, params, obs, prev)
+    assert np.all(np.diff(np.asarray(logvar), axis=0) < 0)
+
+
+def test_filter_encoder_adds_natural_parameter_sites_read_off_the_belief():
+    """With the site layer's kernel zeroed, every step adds the bias's site (w, softplus(r)): after two steps from
+    N(0, 1) the precision is 1 + 2 softplus(r) and the mean 2 w / (1 + 2 softplus(r)). With the network's own weights
+    the site depends on the belief (the same step from two carries adds different sites), the precision never falls,
+    and the mean can move while it does (w is not tied to p)."""
+    encoder = FilterEncoder(8, 4, 2)
+    params = encoder.init(jax.random.key(0), jnp.zeros((1, 3)), jnp.zeros((1, 5)))
+    bias = jnp.array([0.5, -1.0, 0.0, math.log(math.e - 1.0)])  # w = (0.5, -1), p = (log 2, 1).
+    out = {"kernel": jnp.zeros_like(params["params"]["out"]["kernel"]), "bias": bias}
+    fixed = {"params": {**params["params"], "out": out}}
+    x = jax.random.normal(jax.random.key(1), (1, 8))
+    carry, _ = encoder.apply(fixed, jnp.zeros((1, 4)), x, method="recur")
+    _, (mean, logvar) = encoder.apply(fixed, carry, x, method="recur")
+    precision = 1.0 + 2.0 * np.array([math.log(2.0), 1.0])
+    np.testing.assert_allclose(mean[0], np.array([1.0, -2.0]) / precision, rtol=1e-6)
+    np.testing.assert_allclose(logvar[0], -np.log(precision), rtol=1e-6)
+    step = lambda c: encoder.apply(params, c, x, method="recur")[0] - c  # noqa: E731
+    assert float(jnp.max(jnp.abs(step(jnp.zeros((1, 4))) - step(jnp.array([[3.0, -3.0, 1.0, 1.0]]))))) > 1e-3
+    obs = jax.random.normal(jax.random.key(1), (20, 4, 3))
+    prev = jax.nn.one_hot(jax.random.randint(jax.random.key(2), (20, 4), 0, 5), 5)
+    mean, logvar = losses.encoder_scan(encoder, params, obs, prev)
     assert np.all(np.diff(np.asarray(logvar), axis=0) < 0)
 
 

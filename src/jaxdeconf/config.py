@@ -10,7 +10,7 @@ from typing import Any
 from jaxdeconf.algos import NAMES as ALGOS
 from jaxdeconf.envs import parse_bool
 
-ENCODERS = ("gru", "evidence")
+ENCODERS = ("gru", "evidence", "filter")
 WEIGHTINGS = ("sum", "group_mean")  # losses.WEIGHTINGS (not imported: this module stays free of JAX).
 GROUP_LIKELIHOODS = ("declared", "gaussian")
 POLICY_LATENTS = ("current", "final", "random_step")
@@ -56,7 +56,8 @@ class ModelConfig:
     # that the decoder scores: the evidence about theta is in transitions, and small ones (an engine's kick) are a few
     # percent of an observation's spread, hard for a small GRU to difference out of consecutive inputs.
     encoder_deltas: bool = True
-    # q_phi's recurrence: "gru" (the paper's) or "evidence" (a product of per-step Gaussian factors; models.py).
+    # q_phi's recurrence: "gru" (the paper's), "evidence" (a product of per-step Gaussian factors) or "filter" (the
+    # same product with each factor read off the step and the belief so far: assumed-density filtering; models.py).
     encoder: str = _field("gru", ENCODERS)
     # How the decoder weighs the groups of the imitator's view an env declares (``Environment.obs_groups``: e.g. the
     # body and the cue): "sum" adds every dimension's NLL, "group_mean" averages within each group and adds the groups

@@ -208,6 +208,39 @@ class EvidenceEncoder(StepInput):
         return self.recur(carry, self.embed(obs, prev_action))
 
 
+class FilterEncoder(EvidenceEncoder):
+    """q_phi as assumed-density filtering: the evidence encoder's running sums, with each step's factor read off the
+    step *and the belief so far* (its mean and log-variance). The factor is given in natural parameters, an increment
+    w of sum(p m) and p = softplus(.) >= 0 of sum(p), so the posterior's precision still never falls (no forgetting),
+    while its mean can move without a gain in precision.
+
+    A likelihood that is not Gaussian in θ makes this the right family: the half_cheetah's ±1 cue says only whether
+    the target lies above or below the speed, a step in θ, whose Gaussian moment-matched update (the ADF site) depends
+    on where the current belief lies relative to that speed. A factor of the step alone cannot express it."""
+
+    def setup(self) -> None:
+        """Sub-networks: the fused block, then the factor's MLP over [step, belief]."""
+        super().setup()
+        self.site = MLP((self.width,))
+
+    def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
+        """The step's fused features [..., width]; the factor needs the belief, so it is formed in ``recur``."""
+        return self.fused(obs, prev_action)
+
+    def belief(self, carry: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Posterior (mean, log-variance) [B, L] from the running sums [B, 2L] and the prior N(0, I)."""
+        weighted, precision = jnp.split(carry, 2, axis=-1)
+        precision = 1.0 + precision
+        return weighted / precision, -jnp.log(precision)
+
+    def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+        """Add the factor of step x [B, width] given the belief in carry [B, 2L] -> new carry, (mean, logvar)."""
+        mean, logvar = self.belief(carry)
+        w, raw = jnp.split(self.out(self.site(jnp.concatenate([x, mean, logvar], axis=-1))), 2, axis=-1)
+        carry = carry + jnp.concatenate([w, nn.softplus(raw)], axis=-1)
+        return carry, self.belief(carry)
+
+
 class Decoder(nn.Module):
     """p_psi(s_{t+k+1} | z_t, s_{t+k}, a_{t+k}): the next observation's mean or logits."""
 
