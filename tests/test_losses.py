@@ -12,7 +12,16 @@ from jaxdeconf.envs.base import ActionSpace, Observation, ObsGroup
 
 from jaxdeconf import losses
 from jaxdeconf.actors import DeconfoundedActor
-from jaxdeconf.models import Decoder, Encoder, EvidenceEncoder, FilterEncoder, LatentPolicy, RecurrentPolicy, log_prob
+from jaxdeconf.models import (
+    Decoder,
+    Encoder,
+    EvidenceEncoder,
+    FilterEncoder,
+    LatentPolicy,
+    RecurrentPolicy,
+    log_prob,
+    make_encoder,
+)
 
 HALF_LOG_2PI = 0.5 * math.log(2 * math.pi)
 
@@ -66,13 +75,8 @@ def test_sequential_kl_prior_is_previous_posterior():
     np.testing.assert_allclose(kl, [0.5, 0.0, 2.0], atol=1e-6)
 
 
-def _encoder(kind, latent):
-    return Encoder(8, 4, 6, latent) if kind == "gru" else {"evidence": EvidenceEncoder, "filter": FilterEncoder}[kind](
-        8, 4, latent)
-
-
 def _tiny_models(enc_obs_size=1, kind="gru"):
-    encoder = _encoder(kind, 3)
+    encoder = make_encoder(kind, 8, 4, 6, 3)
     decoder = Decoder(8, 4, 1)
     k1, k2 = jax.random.split(jax.random.key(0))
     obs, act, z = jnp.zeros((1, 1)), jnp.zeros((1, 5)), jnp.zeros((1, 3))
@@ -159,7 +163,7 @@ def test_prediction_mask_counts_steps_left():
 def test_deconfounded_actor_matches_teacher_forced_posterior(deltas, kind):
     """Algorithm 2 step by step (what acts online) gives the policy outputs that training computes with scans."""
     d, B, T = 3, 4, 6
-    encoder = _encoder(kind, 2)
+    encoder = make_encoder(kind, 8, 4, 6, 2)
     policy = LatentPolicy(8, 5)
     scale = jnp.array([0.5, 1.0, 2.0]) if deltas else None
     k1, k2, k3, k4 = jax.random.split(jax.random.key(7), 4)

@@ -195,12 +195,16 @@ class EvidenceEncoder(StepInput):
         precision = nn.softplus(raw)
         return jnp.concatenate([precision * mean, precision], axis=-1)
 
+    def belief(self, carry: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Posterior (mean, log-variance) [B, L] from the running sums [B, 2L] and the prior N(0, I)."""
+        weighted, precision = jnp.split(carry, 2, axis=-1)
+        precision = 1.0 + precision
+        return weighted / precision, -jnp.log(precision)
+
     def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         """Add this step's factor: carry [B, 2L], x [B, 2L] -> new carry, (mean, logvar) each [B, L]."""
         carry = carry + x
-        weighted, precision = jnp.split(carry, 2, axis=-1)
-        precision = 1.0 + precision
-        return carry, (weighted / precision, -jnp.log(precision))
+        return carry, self.belief(carry)
 
     def __call__(self, obs: jax.Array, prev_action: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         """One step from the prior (used for initialisation)."""
@@ -227,18 +231,19 @@ class FilterEncoder(EvidenceEncoder):
         """The step's fused features [..., width]; the factor needs the belief, so it is formed in ``recur``."""
         return self.fused(obs, prev_action)
 
-    def belief(self, carry: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Posterior (mean, log-variance) [B, L] from the running sums [B, 2L] and the prior N(0, I)."""
-        weighted, precision = jnp.split(carry, 2, axis=-1)
-        precision = 1.0 + precision
-        return weighted / precision, -jnp.log(precision)
-
     def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         """Add the factor of step x [B, width] given the belief in carry [B, 2L] -> new carry, (mean, logvar)."""
         mean, logvar = self.belief(carry)
         w, raw = jnp.split(self.out(self.site(jnp.concatenate([x, mean, logvar], axis=-1))), 2, axis=-1)
         carry = carry + jnp.concatenate([w, nn.softplus(raw)], axis=-1)
         return carry, self.belief(carry)
+
+
+def make_encoder(kind: str, width: int, action_embed: int, gru: int, latent: int) -> Encoder | EvidenceEncoder:
+    """q_phi by ``model.encoder``'s name: "gru" (hidden size ``gru``), "evidence" or "filter"."""
+    if kind == "gru":
+        return Encoder(width, action_embed, gru, latent)
+    return {"evidence": EvidenceEncoder, "filter": FilterEncoder}[kind](width, action_embed, latent)
 
 
 class Decoder(nn.Module):

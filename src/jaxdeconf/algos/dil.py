@@ -23,7 +23,7 @@ from jaxdeconf.algos.base import (
 )
 from jaxdeconf.data import Trajectory, buffer_add, buffer_sample, rollout
 from jaxdeconf.envs import ObsGroup
-from jaxdeconf.models import Decoder, Encoder, EvidenceEncoder, FilterEncoder, LatentPolicy, action_features, head_size
+from jaxdeconf.models import Decoder, Encoder, EvidenceEncoder, LatentPolicy, action_features, head_size, make_encoder
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,8 +56,7 @@ class Deconfounded(Algorithm):
         m = self.config.model
         size = self.env.obs_sizes(self.env_params).imitator
         return (
-            Encoder(m.width, m.action_embed, m.gru, m.latent) if m.encoder == "gru"
-            else {"evidence": EvidenceEncoder, "filter": FilterEncoder}[m.encoder](m.width, m.action_embed, m.latent),
+            make_encoder(m.encoder, m.width, m.action_embed, m.gru, m.latent),
             Decoder(m.width, m.action_embed, size),
             LatentPolicy(m.width, head_size(self.space), m.policy_fusion),
         )
