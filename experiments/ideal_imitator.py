@@ -26,17 +26,19 @@ from bayes_filter import GRID, SPEED_INDEX, raw_imitator_view
 from jax.scipy.stats import norm
 from jaxdeconf.envs.base import Observation
 
+from jaxdeconf.actors import ExpertActor
 from jaxdeconf.config import ConfigError
 from jaxdeconf.data import rollout
+from jaxdeconf.diagnostics import episode_theta
 from jaxdeconf.policy import load_state
 
 
 @dataclasses.dataclass(frozen=True)
-class BeliefOracle:
-    """The oracle's actor with θ in its view replaced by a belief: the ideal observer's posterior mean
-    (``mode="ideal"``) or the prior mean (``mode="prior"``)."""
+class IdealObserver:
+    """A belief over θ from the speeds and cues alone: the exact grid posterior's mean (``mode="ideal"``) or the prior
+    mean throughout (``mode="prior"``); ``inner`` acts on it (``init_carry``; ``act(params, carry, obs, prev, θ̂)``)."""
 
-    oracle: Any  # The oracle's RecurrentActor or MarkovActor.
+    inner: Any
     env: Any  # NormalizedViews: the views' (mean, std) are in env.stats.
     params: Any
     mode: str
@@ -47,7 +49,7 @@ class BeliefOracle:
         return jnp.linspace(float(self.params.target_low), float(self.params.target_high), GRID)
 
     def init_carry(self, batch: int) -> Any:
-        return self.oracle.init_carry(batch), jnp.zeros((batch, GRID), jnp.float32)
+        return self.inner.init_carry(batch), jnp.zeros((batch, GRID), jnp.float32)
 
     def __call__(self, params: Any, carry: Any, obs: Observation, prev_action: jax.Array):
         inner, log_post = carry
@@ -60,10 +62,52 @@ class BeliefOracle:
             theta_hat = jax.nn.softmax(log_post, axis=-1) @ self.grid
         else:
             theta_hat = jnp.full((view.shape[0],), self.grid.mean())
-        mean, std = self.env.stats["oracle"]
-        oracle_view = (jnp.concatenate([view, theta_hat[:, None]], axis=-1) - mean) / std
-        inner, out = self.oracle(params, inner, dataclasses.replace(obs, oracle=oracle_view), prev_action)
+        inner, out = self.inner.act(params, inner, obs, prev_action, theta_hat)
         return (inner, log_post), out
+
+
+@dataclasses.dataclass(frozen=True)
+class OracleOn:
+    """The trained oracle with θ̂ in place of θ in its view."""
+
+    oracle: Any  # The oracle's RecurrentActor or MarkovActor.
+    env: Any
+
+    def init_carry(self, batch: int) -> Any:
+        return self.oracle.init_carry(batch)
+
+    def act(self, params: Any, carry: Any, obs: Observation, prev_action: jax.Array, theta_hat: jax.Array):
+        mean, std = self.env.stats["oracle"]
+        view = (jnp.concatenate([raw_imitator_view(self.env, obs.imitator), theta_hat[:, None]], -1) - mean) / std
+        return self.oracle(params, carry, dataclasses.replace(obs, oracle=view), prev_action)
+
+
+@dataclasses.dataclass(frozen=True)
+class DilPolicyOn:
+    """dil's π_η(a | s, z) with z = E[q_φ's final posterior mean | θ] at θ̂: ``coef`` [4, L] of a cubic in θ fitted
+    on expert episodes, so the policy gets the code it was cloned on for that θ."""
+
+    policy: Any
+    coef: jax.Array
+
+    def init_carry(self, batch: int) -> Any:
+        return jnp.zeros((batch, 0), jnp.float32)
+
+    def act(self, params: Any, carry: Any, obs: Observation, prev_action: jax.Array, theta_hat: jax.Array):
+        return carry, self.policy.apply(params, obs.imitator, cubic(theta_hat) @ self.coef)
+
+
+def cubic(theta: jax.Array) -> jax.Array:
+    return jnp.stack([jnp.ones_like(theta), theta, theta**2, theta**3], axis=-1)
+
+
+def latent_map(dil: Any, state: Any, key: jax.Array, episodes: int = 512) -> jax.Array:
+    """Least-squares cubic [4, L] from θ to q_φ's posterior mean after the expert's whole episode."""
+    expert, _ = jax.jit(lambda k: rollout(dil.env, dil.env_params, ExpertActor(dil.env, dil.env_params), None, k,
+                                          episodes))(key)
+    z = dil.posterior_means(state, expert)[-1]
+    theta = episode_theta(dil.env, dil.env_params, expert.obs.oracle[0])[:, 0]
+    return jnp.linalg.lstsq(cubic(theta), z)[0]
 
 
 def evaluate(alg: Any, actor: Any, actor_params: Any, key: jax.Array, episodes: int, horizon: int) -> dict[str, float]:
@@ -82,40 +126,68 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--episodes", type=int, default=64)
     p.add_argument("--horizon", type=int, default=0, help="episode length (default: the folder's)")
+    p.add_argument("--dil", default="", help="a results folder with a finished dil (same env settings and seeds)")
     args = p.parse_args(argv)
     try:
-        bc, bc_states, config = load_state(args.folder, "bc")
-        oracle, oracle_states, _ = load_state(args.folder, "oracle")
+        bc, bc_state, config = seed_state(args.folder, "bc", args.seed)
+        oracle, oracle_state, _ = seed_state(args.folder, "oracle", args.seed)
+        dil = seed_state(args.dil, "dil", args.seed) if args.dil else None
         if config.env != "half_cheetah":
             raise ConfigError(f"{args.folder} is a {config.env} run; this diagnostic is for half_cheetah")
-        if not config.seed_start <= args.seed < config.seed_start + config.seeds:
-            raise ConfigError(f"--seed {args.seed} is not in {args.folder}; it holds seeds {config.seed_start} to "
-                              f"{config.seed_start + config.seeds - 1}")
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    pick = args.seed - config.seed_start
-    bc_params = bc.actor_params(jax.tree.map(lambda x: x[pick], bc_states))
-    oracle_params = oracle.actor_params(jax.tree.map(lambda x: x[pick], oracle_states))
     horizon = args.horizon or oracle.env_params.horizon
     key = jax.random.key(args.seed + 3000)
-    rows = {
-        "bc": evaluate(bc, bc.actor(), bc_params, key, args.episodes, horizon),
-        "oracle (θ)": evaluate(oracle, oracle.actor(), oracle_params, key, args.episodes, horizon),
-        "oracle on the ideal observer's belief": evaluate(
-            oracle, BeliefOracle(oracle.actor(), oracle.env, oracle.env_params, "ideal"), oracle_params, key,
-            args.episodes, horizon),
-        "oracle on the prior mean": evaluate(
-            oracle, BeliefOracle(oracle.actor(), oracle.env, oracle.env_params, "prior"), oracle_params, key,
-            args.episodes, horizon),
+    o_actor, o_params = OracleOn(oracle.actor(), oracle.env), oracle.actor_params(oracle_state)
+    runs = {
+        "bc": (bc, bc.actor(), bc.actor_params(bc_state)),
+        "oracle (θ)": (oracle, oracle.actor(), o_params),
+        "oracle on the ideal observer's belief": (oracle, IdealObserver(o_actor, oracle.env, oracle.env_params,
+                                                                        "ideal"), o_params),
+        "oracle on the prior mean": (oracle, IdealObserver(o_actor, oracle.env, oracle.env_params, "prior"), o_params),
     }
+    if dil is not None:
+        alg, state, _ = dil
+        coef = latent_map(alg, state, jax.random.key(args.seed + 4000))
+        policy = DilPolicyOn(alg.networks[2], coef)
+        runs["dil as deployed (Algorithm 2)"] = (alg, alg.actor(), alg.actor_params(state))
+        runs["dil's π_η on the ideal observer's belief"] = (
+            alg, IdealObserver(policy, alg.env, alg.env_params, "ideal"), state.policy.params)
+        runs["dil's π_η on z(θ), the true θ"] = (alg, TrueTheta(policy, alg.env, alg.env_params), state.policy.params)
+    rows = {name: evaluate(a, actor, params, key, args.episodes, horizon) for name, (a, actor, params) in runs.items()}
     low, high = rows["bc"]["return"], rows["oracle (θ)"]["return"]
     print(f"seed {args.seed}, {args.episodes} episodes of {horizon} steps")
     for name, r in rows.items():
         gap = (r["return"] - low) / (high - low)
-        print(f"  {name:40s} return {r['return']:8.1f}  gap {gap:5.0%}  |v − θ| {r['error']:.3f} "
+        print(f"  {name:45s} return {r['return']:8.1f}  gap {gap:5.0%}  |v − θ| {r['error']:.3f} "
               f"(first quarter {r['error_first_quarter']:.3f}, rest {r['error_rest']:.3f})")
     return 0
+
+
+@dataclasses.dataclass(frozen=True)
+class TrueTheta:
+    """``inner`` acting on θ itself, read off the oracle's view."""
+
+    inner: Any
+    env: Any
+    params: Any
+
+    def init_carry(self, batch: int) -> Any:
+        return self.inner.init_carry(batch)
+
+    def __call__(self, params: Any, carry: Any, obs: Observation, prev_action: jax.Array):
+        theta = episode_theta(self.env, self.params, obs.oracle)[:, 0]
+        return self.inner.act(params, carry, obs, prev_action, theta)
+
+
+def seed_state(folder: str, algo: str, seed: int) -> tuple[Any, Any, Any]:
+    """(algorithm, one seed's TrainState, config) of ``algo`` in ``folder``."""
+    alg, states, config = load_state(folder, algo)
+    if not config.seed_start <= seed < config.seed_start + config.seeds:
+        raise ConfigError(f"--seed {seed} is not in {folder}; it holds seeds {config.seed_start} to "
+                          f"{config.seed_start + config.seeds - 1}")
+    return alg, jax.tree.map(lambda x: x[seed - config.seed_start], states), config
 
 
 if __name__ == "__main__":
