@@ -12,8 +12,8 @@ import pytest
 from conftest import assert_rows_close
 
 from jaxdeconf.algos import NAMES as ALGOS
-from jaxdeconf.algos.dil import Deconfounded
-from jaxdeconf.data import buffer_add, buffer_sample
+from jaxdeconf.algos.dil import Deconfounded, latent_moments
+from jaxdeconf.data import buffer_add, buffer_sample, replay
 from jaxdeconf.train import build_algorithm, compiled_chunk, over_seeds, seed_keys, train_algorithm
 
 
@@ -69,6 +69,42 @@ def test_cached_latents_equal_per_batch_encoding(tiny_config):
     cached = algo.policy_outputs(state.policy.params, state, batch, context[:, idx])
     direct = algo.policy_outputs(state.policy.params, state, batch)
     np.testing.assert_allclose(cached, direct, rtol=1e-5, atol=1e-6)
+
+
+def test_latent_moments_count_valid_steps_only():
+    """Hand values: dimension 0 takes 1, 3 on valid steps (mean 2, std 1), dimension 1 takes 5, 5 (std 0, floored at
+    0.01); the invalid step's 100 counts for nothing."""
+    latents = jnp.array([[[1.0, 5.0], [3.0, 5.0]], [[100.0, 100.0], [0.0, 0.0]]])  # [T=2, B=2, L=2]
+    valid = jnp.array([[True, True], [False, False]])
+    mean, std = latent_moments(latents, valid)
+    np.testing.assert_allclose(mean, [2.0, 5.0])
+    np.testing.assert_allclose(std, [1.0, 0.01])
+
+
+def test_standardised_latents_are_fit_to_the_buffer_and_read_the_same_online(tiny_config):
+    """``latent_norm=expert``: the policy steps refit θ-hat's moments to the buffer's cloning latents, the policy
+    is cloned on them standardised, and Algorithm 2 online (teacher-forced ``replay``) reads them the same way."""
+    algo = build_algorithm(tiny_config(**{"model.latent_norm": "expert", "model.policy_latent": "final"}), "dil")
+    state = algo.init(jax.random.key(0))
+    state, _ = algo.collect_expert(state, jax.random.key(1))
+    data = state.expert_buffer.data
+    fitted = algo.before_policy_steps(state, None)
+    latents = algo.training_context(state, data)
+    mean, std = fitted.latent_stats
+    assert float(std.min()) > 0.01  # Every dimension varies across episodes: a real standardisation, not the floor.
+    valid = np.asarray(data.valid)
+    z = (np.asarray(latents)[valid] - np.asarray(mean)) / np.asarray(std)
+    np.testing.assert_allclose(z.mean(0), 0.0, atol=1e-4)
+    np.testing.assert_allclose(z.std(0), 1.0, rtol=1e-3)
+    trained, _ = algo.update_policy(state, jax.random.key(2))
+    np.testing.assert_allclose(trained.latent_stats[0], mean, rtol=1e-6)
+    final = algo.posterior_means(trained, data)  # Online the policy reads the current step's belief.
+    expected = algo.policy_outputs(trained.policy.params, trained, data, final)
+    online = replay(algo.actor(), algo.actor_params(trained), data, algo.space)
+    np.testing.assert_allclose(online, expected, rtol=1e-4, atol=1e-5)
+    plain = build_algorithm(tiny_config(**{"model.policy_latent": "final"}), "dil")
+    raw = plain.policy_outputs(trained.policy.params, trained, data, final)
+    assert not np.allclose(raw, expected, atol=1e-3)
 
 
 def test_sampled_policy_latents_scatter_around_the_posterior_mean(tiny_config):

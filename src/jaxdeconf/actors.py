@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxdeconf.envs.base import Environment, Observation
-from jaxdeconf.models import LOG_STD_MIN, Encoder, EvidenceEncoder, LatentPolicy, RecurrentPolicy
+from jaxdeconf.models import LOG_STD_MIN, Encoder, EvidenceEncoder, LatentPolicy, RecurrentPolicy, standardise
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,6 +78,7 @@ class DeconfoundedActor:
     encoder: Encoder | EvidenceEncoder
     policy: LatentPolicy
     delta_scale: Any = None  # [d] array, or None.
+    standardise: bool = False  # Read θ-hat as (mean − params["latent_stats"][0]) / params["latent_stats"][1].
 
     def init_carry(self, batch: int) -> Any:
         """Zero GRU state of the inference model (and, with deltas, no previous observation yet)."""
@@ -87,7 +88,7 @@ class DeconfoundedActor:
         return gru, jnp.zeros((batch, len(self.delta_scale)), jnp.float32), jnp.zeros((batch, 1), jnp.bool_)
 
     def __call__(self, params: dict[str, Any], carry: Any, obs: Observation, prev_action: jax.Array):
-        """params: {"encoder": ..., "policy": ...}."""
+        """params: {"encoder": ..., "policy": ...} (and "latent_stats" with ``standardise``)."""
         s = obs.imitator
         if self.delta_scale is None:
             gru, enc_obs = carry, s
@@ -97,4 +98,6 @@ class DeconfoundedActor:
         x = self.encoder.apply(params["encoder"], enc_obs, prev_action, method="embed")
         gru, (mean, _) = self.encoder.apply(params["encoder"], gru, x, method="recur")
         carry = gru if self.delta_scale is None else (gru, s, jnp.ones_like(started))
+        if self.standardise:
+            mean = standardise(mean, params["latent_stats"])
         return carry, self.policy.apply(params["policy"], s, mean)

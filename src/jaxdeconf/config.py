@@ -16,6 +16,7 @@ GROUP_LIKELIHOODS = ("declared", "gaussian")
 POLICY_LATENTS = ("current", "final", "random_step")
 LATENT_DRAWS = ("mean", "sample")
 FUSIONS = ("late", "early")
+LATENT_NORMS = ("none", "expert")
 BC_MEMORIES = ("gru", "none")
 DISC_INPUTS = ("next", "transition")
 GAIL_REWARDS = ("discriminator", "env")
@@ -80,6 +81,12 @@ class ModelConfig:
     # reference code's), or "early", beside the observation at the input, where the oracle's θ sits in its view.
     # dil_offline's pi_eta is the same network and follows this too.
     policy_fusion: str = _field("late", FUSIONS)
+    # How dil's policy sees θ-hat: "none" (q_phi's posterior mean as it is, the reference code's) or "expert" (each
+    # dimension standardised by its mean and standard deviation over the θ-hats the policy is cloned on, refit from the
+    # expert buffer before each iteration's policy steps and applied online too), as the oracle's θ is standardised
+    # with its view. A sharp posterior can sit far from the prior with a spread of a few hundredths, where beside a
+    # standardised observation the policy barely reads it (docs/results.md).
+    latent_norm: str = _field("none", LATENT_NORMS)
 
 
 @dataclasses.dataclass(frozen=True)

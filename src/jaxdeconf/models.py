@@ -281,6 +281,13 @@ class LatentPolicy(nn.Module):
         return nn.Dense(self.out_size)(MLP((self.width, self.width))(h))
 
 
+def standardise(z: jax.Array, stats: tuple[jax.Array, jax.Array]) -> jax.Array:
+    """(z − mean) / std for z [..., L] and ``stats`` = (mean, std) [L] each: θ-hat as dil's policy reads it with
+    ``model.latent_norm=expert``."""
+    mean, std = stats
+    return (z - mean) / std
+
+
 class RecurrentPolicy(StepInput):
     """Naive-BC (or oracle) policy: MLP(obs) ⊕ embedding(previous action) -> GRU -> MLP -> head."""
 

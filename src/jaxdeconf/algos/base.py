@@ -52,6 +52,7 @@ class TrainState:
     explore_buffer: Buffer | None  # The imitator's own episodes (dil's exploration data, gail's latest rollouts).
     key: jax.Array
     iteration: jax.Array  # int32: iterations done.
+    latent_stats: Any = None  # dil with ``model.latent_norm=expert``: θ-hat's (mean, std) [L] each; else None.
 
 
 def make_optimizer(lr: float, weight_decay: float, clip: float) -> optax.GradientTransformation:
@@ -157,6 +158,11 @@ class Algorithm:
         del state, key  # Unused.
         return None
 
+    def before_policy_steps(self, state: TrainState, context: jax.Array | None) -> TrainState:
+        """What the policy steps hold fixed besides ``context``, fitted just before them (none by default)."""
+        del context  # Unused.
+        return state
+
     def update_encoder(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
         """Inference-model updates (none by default)."""
         del key  # Unused.
@@ -186,6 +192,7 @@ class Algorithm:
         """``policy_steps`` BC steps on batches of whole expert episodes."""
         grad_fn = jax.value_and_grad(self.policy_loss)
         context = self.policy_context(state, jax.random.fold_in(key, 1))  # Leaves the steps' keys as they were.
+        state = self.before_policy_steps(state, context)
 
         def step(learner: Learner, step_key: jax.Array) -> tuple[Learner, jax.Array]:
             idx = buffer_indices(state.expert_buffer, step_key, self.config.train.batch_size)

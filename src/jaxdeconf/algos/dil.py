@@ -23,7 +23,16 @@ from jaxdeconf.algos.base import (
 )
 from jaxdeconf.data import Trajectory, buffer_add, buffer_sample, rollout
 from jaxdeconf.envs import ObsGroup
-from jaxdeconf.models import Decoder, Encoder, EvidenceEncoder, LatentPolicy, action_features, head_size, make_encoder
+from jaxdeconf.models import (
+    Decoder,
+    Encoder,
+    EvidenceEncoder,
+    LatentPolicy,
+    action_features,
+    head_size,
+    make_encoder,
+    standardise,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -95,16 +104,23 @@ class Deconfounded(Algorithm):
             explore_buffer=self._empty_buffer(),
             key=key,
             iteration=jnp.zeros((), jnp.int32),
+            latent_stats=(jnp.zeros(latent), jnp.ones(latent)) if self.standardises else None,
         )
+
+    @property
+    def standardises(self) -> bool:
+        """Whether the policy reads θ-hat standardised (``model.latent_norm=expert``)."""
+        return self.config.model.latent_norm == "expert"
 
     def actor(self) -> DeconfoundedActor:
         """Algorithm 2."""
         encoder, _, policy = self.networks
-        return DeconfoundedActor(encoder, policy, self.encoder_scale)
+        return DeconfoundedActor(encoder, policy, self.encoder_scale, self.standardises)
 
     def actor_params(self, state: TrainState) -> dict[str, Any]:
-        """Encoder and policy parameters."""
-        return {"encoder": state.encoder.params["encoder"], "policy": state.policy.params}
+        """Encoder and policy parameters (and θ-hat's standardisation, when the policy reads it standardised)."""
+        params = {"encoder": state.encoder.params["encoder"], "policy": state.policy.params}
+        return {**params, "latent_stats": state.latent_stats} if self.standardises else params
 
     def collect_explore(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
         """The imitator's own episodes (the exploration policy is pi_eta on the current posterior mean)."""
@@ -174,6 +190,15 @@ class Deconfounded(Algorithm):
         data = state.expert_buffer.data
         return self.training_context(state, data, key)
 
+    def before_policy_steps(self, state: TrainState, context: jax.Array | None) -> TrainState:
+        """With ``model.latent_norm=expert``, refit θ-hat's standardisation to the latents the policy is about to be
+        cloned on along the whole expert buffer (``context``, or the buffer's posterior means when none was drawn)."""
+        if not self.standardises:
+            return state
+        data = state.expert_buffer.data
+        latents = self.training_context(state, data) if context is None else context
+        return state.replace(latent_stats=latent_moments(latents, data.valid))
+
     def training_context(self, state: TrainState, traj: Trajectory, key: jax.Array | None = None) -> jax.Array:
         """The θ-hat [T, B, L] the policy is cloned on along expert episodes ``traj``: ``model.policy_latent`` picks
         the step of q_phi's posterior, ``model.policy_latent_draw`` its mean or a draw from it (``sample_latents``)."""
@@ -194,6 +219,8 @@ class Deconfounded(Algorithm):
         _, _, policy = self.networks
         if context is None:
             context = self.training_context(state, traj)
+        if self.standardises:
+            context = standardise(context, state.latent_stats)
         return policy.apply(policy_params, traj.obs.imitator[: traj.horizon], context)
 
 
@@ -218,3 +245,14 @@ def sample_latents(mean: jax.Array, std: jax.Array, key: jax.Array) -> jax.Array
     ``final`` latents it is one draw of θ-hat_H ~ q_phi(θ | τ) per episode, as in Algorithm 1."""
     noise = jax.random.normal(key, (1, *mean.shape[1:]), mean.dtype)
     return mean + std * noise
+
+
+def latent_moments(latents: jax.Array, valid: jax.Array, floor: float = 1e-2) -> tuple[jax.Array, jax.Array]:
+    """Per-dimension mean and standard deviation [L] (floored at ``floor``) of latents [T, B, L] over the valid steps
+    (mask [T, B]) of episodes; empty buffer slots, all invalid, count for nothing."""
+    weight = valid.astype(latents.dtype)[..., None]
+    count = jnp.maximum(weight.sum((0, 1)), 1.0)
+    mean = (latents * weight).sum((0, 1)) / count
+    var = (((latents - mean) ** 2) * weight).sum((0, 1)) / count
+    return mean, jnp.maximum(jnp.sqrt(var), floor)
+
