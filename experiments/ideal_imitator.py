@@ -30,6 +30,7 @@ from jaxdeconf.actors import ExpertActor
 from jaxdeconf.config import ConfigError
 from jaxdeconf.data import rollout
 from jaxdeconf.diagnostics import episode_theta
+from jaxdeconf.models import standardise
 from jaxdeconf.policy import load_state
 
 
@@ -102,10 +103,13 @@ def cubic(theta: jax.Array) -> jax.Array:
 
 
 def latent_map(dil: Any, state: Any, key: jax.Array, episodes: int = 512) -> jax.Array:
-    """Least-squares cubic [4, L] from θ to q_φ's posterior mean after the expert's whole episode."""
+    """Least-squares cubic [4, L] from θ to q_φ's posterior mean after the expert's whole episode, as the policy reads
+    it (standardised with ``model.latent_norm=expert``)."""
     expert, _ = jax.jit(lambda k: rollout(dil.env, dil.env_params, ExpertActor(dil.env, dil.env_params), None, k,
                                           episodes))(key)
     z = dil.posterior_means(state, expert)[-1]
+    if dil.standardises:
+        z = standardise(z, state.latent_stats)
     theta = episode_theta(dil.env, dil.env_params, expert.obs.oracle[0])[:, 0]
     return jnp.linalg.lstsq(cubic(theta), z)[0]
 
