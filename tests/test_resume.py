@@ -24,8 +24,10 @@ def _rows(folder):
     return [json.loads(line) for line in (folder / "metrics.jsonl").read_text().splitlines()]
 
 
-def test_interrupted_run_resumes_exactly(tmp_path, tiny_config, monkeypatch):
-    config = tiny_config()
+@pytest.mark.parametrize("overrides", [{}, {"model.latent_norm": "expert"}], ids=["plain", "latent_norm"])
+def test_interrupted_run_resumes_exactly(tmp_path, tiny_config, monkeypatch, overrides):
+    """Resumed from its checkpoint, a run is the uninterrupted one (with θ-hat's standardisation in the state too)."""
+    config = tiny_config(**overrides)
     train_algorithm(config, "dil", tmp_path / "whole", progress=False)
 
     real_save = Checkpoints.save

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import pathlib
 from typing import Any
 
@@ -13,14 +14,19 @@ from jaxdeconf.config import ConfigError
 from jaxdeconf.sharding import place
 
 
-def _to_raw(state: Any) -> Any:
-    """Replace the typed key by its uint32 data so orbax can store it."""
-    return state.replace(key=jax.random.key_data(state.key))
+def _to_raw(state: Any) -> dict[str, Any]:
+    """The state's fields as a dict orbax can store: the typed key as its uint32 data, and ``latent_stats`` only
+    where a run has them, so checkpoints of runs without them keep the layout they always had."""
+    raw = {f.name: getattr(state, f.name) for f in dataclasses.fields(state)}
+    raw["key"] = jax.random.key_data(state.key)
+    if raw["latent_stats"] is None:
+        del raw["latent_stats"]
+    return raw
 
 
-def _from_raw(state: Any) -> Any:
-    """Inverse of ``_to_raw``."""
-    return state.replace(key=jax.random.wrap_key_data(state.key))
+def _from_raw(raw: dict[str, Any], like: Any) -> Any:
+    """Inverse of ``_to_raw``, into the type of ``like``."""
+    return type(like)(**{**raw, "key": jax.random.wrap_key_data(raw["key"])})
 
 
 def _leading(metadata: Any) -> int:
@@ -78,7 +84,7 @@ class Checkpoints:
                 f"checkpoint {self.directory / str(step)} is unreadable ({reason}); it was left untouched: "
                 "move it away to restart from the previous one, or pass --overwrite to retrain from scratch"
             ) from None
-        return _from_raw(jax.tree.map(_place_like, host, raw_like))
+        return _from_raw(jax.tree.map(_place_like, host, raw_like), like)
 
     def close(self) -> None:
         """Release the manager's threads."""
