@@ -19,7 +19,7 @@ def _to_raw(state: Any) -> dict[str, Any]:
     where a run has them, so checkpoints of runs without them keep the layout they always had."""
     raw = {f.name: getattr(state, f.name) for f in dataclasses.fields(state)}
     raw["key"] = jax.random.key_data(state.key)
-    if raw["latent_stats"] is None:
+    if "latent_stats" in raw and raw["latent_stats"] is None:
         del raw["latent_stats"]
     return raw
 
