@@ -13,15 +13,16 @@ import orbax.checkpoint as ocp
 from jaxdeconf.config import ConfigError
 from jaxdeconf.sharding import place
 
+#: State fields added after checkpoints were first written: stored only where set, so the checkpoints of runs that
+#: leave them unset keep the layout they always had and older ones restore.
+OPTIONAL_FIELDS = ("latent_stats",)
+
 
 def _to_raw(state: Any) -> dict[str, Any]:
-    """The state's fields as a dict orbax can store: the typed key as its uint32 data, and ``latent_stats`` only
-    where a run has them, so checkpoints of runs without them keep the layout they always had."""
+    """The state's fields as a dict orbax can store: the typed key as uint32 data, unset optional fields left out."""
     raw = {f.name: getattr(state, f.name) for f in dataclasses.fields(state)}
     raw["key"] = jax.random.key_data(state.key)
-    if "latent_stats" in raw and raw["latent_stats"] is None:
-        del raw["latent_stats"]
-    return raw
+    return {name: value for name, value in raw.items() if not (name in OPTIONAL_FIELDS and value is None)}
 
 
 def _from_raw(raw: dict[str, Any], like: Any) -> Any:

@@ -255,4 +255,3 @@ def latent_moments(latents: jax.Array, valid: jax.Array, floor: float = 1e-2) ->
     mean = (latents * weight).sum((0, 1)) / count
     var = (((latents - mean) ** 2) * weight).sum((0, 1)) / count
     return mean, jnp.maximum(jnp.sqrt(var), floor)
-
