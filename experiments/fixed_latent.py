@@ -13,36 +13,18 @@ gap: the policy's cloning is what falls short.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from jaxdeconf.actors import ExpertActor
+from jaxdeconf.actors import ExpertActor, FixedLatentActor
 from jaxdeconf.config import ConfigError
 from jaxdeconf.data import rollout
 from jaxdeconf.policy import load_state
 
 STEPS = (5, 10, 25, 50, 100, 150, 199)
-
-
-@dataclasses.dataclass(frozen=True)
-class FixedLatentActor:
-    """π_η on the imitator's view with a given θ-hat per episode: params {"policy": ..., "z": [B, L]}."""
-
-    policy: Any
-
-    def init_carry(self, batch: int) -> jax.Array:
-        """No recurrent state."""
-        return jnp.zeros((batch, 0), jnp.float32)
-
-    def __call__(self, params: dict[str, Any], carry: jax.Array, obs: Any, prev_action: jax.Array):
-        """The policy head on (s, z)."""
-        del prev_action  # Unused: the policy is Markov.
-        return carry, self.policy.apply(params["policy"], obs.imitator, params["z"])
 
 
 def rollouts(folder: str, seed: int, episodes: int) -> dict[str, Any]:

@@ -19,9 +19,8 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-from fixed_latent import FixedLatentActor
 
-from jaxdeconf.actors import ExpertActor
+from jaxdeconf.actors import ExpertActor, FixedLatentActor
 from jaxdeconf.algos.base import apply_gradients
 from jaxdeconf.algos.dil import training_latents
 from jaxdeconf.config import ConfigError

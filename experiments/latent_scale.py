@@ -16,10 +16,9 @@ import sys
 
 import jax
 import jax.numpy as jnp
-from fixed_latent import FixedLatentActor
 from latent_input import clone
 
-from jaxdeconf.actors import DeconfoundedActor, ExpertActor
+from jaxdeconf.actors import DeconfoundedActor, ExpertActor, FixedLatentActor
 from jaxdeconf.algos.dil import latent_moments, training_latents
 from jaxdeconf.data import rollout
 from jaxdeconf.models import standardise

@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 from conftest import assert_rows_close
 
+from jaxdeconf.actors import FixedLatentActor
 from jaxdeconf.algos import NAMES as ALGOS
-from jaxdeconf.algos.dil import Deconfounded, latent_moments
-from jaxdeconf.data import buffer_add, buffer_sample, replay
+from jaxdeconf.algos.dil import Deconfounded, latent_moments, training_latents
+from jaxdeconf.data import buffer_add, buffer_indices, buffer_sample, replay, rollout
 from jaxdeconf.train import build_algorithm, compiled_chunk, over_seeds, seed_keys, train_algorithm
 
 
@@ -105,6 +106,34 @@ def test_standardised_latents_are_fit_to_the_buffer_and_read_the_same_online(tin
     plain = build_algorithm(tiny_config(**{"model.policy_latent": "final"}), "dil")
     raw = plain.policy_outputs(trained.policy.params, trained, data, final)
     assert not np.allclose(raw, expected, atol=1e-3)
+
+
+@pytest.mark.parametrize("norm", ["none", "expert"])
+def test_mixed_exploration_commits_half_the_episodes_to_an_expert_latent(tiny_config, norm):
+    """``explore_latent=mixed``: of one iteration's own episodes, the first half are Algorithm 2 online, the second
+    half pi_eta with θ-hat held at the final posterior mean (as the policy reads it) of the expert-buffer episodes
+    drawn, recomputed here from the whole buffer's posterior and the draw's indices."""
+    algo = build_algorithm(tiny_config(**{"model.explore_latent": "mixed", "model.latent_norm": norm}), "dil")
+    state = algo.init(jax.random.key(0))
+    state, _ = algo.collect_expert(state, jax.random.key(1))
+    state = algo.before_policy_steps(state, None)
+    key = jax.random.key(2)
+    explored, _ = algo.collect_explore(state, key)
+    got = explored.explore_buffer
+    assert int(got.size) == 4
+    online, _ = rollout(algo.env, algo.env_params, algo.actor(), algo.actor_params(state), key, 2)
+    np.testing.assert_array_equal(got.data.action[:, :2], online.action)
+    k_pick, k_roll = jax.random.split(jax.random.fold_in(key, 1))
+    finals = np.asarray(training_latents(algo.posterior_means(state, state.expert_buffer.data),
+                                         state.expert_buffer.data.valid, "final")[-1])
+    z = finals[np.asarray(buffer_indices(state.expert_buffer, k_pick, 2))]
+    if norm == "expert":
+        z = (z - np.asarray(state.latent_stats[0])) / np.asarray(state.latent_stats[1])
+    params = {"policy": state.policy.params, "z": jnp.asarray(z)}
+    committed, _ = rollout(algo.env, algo.env_params, FixedLatentActor(algo.networks[2]), params, k_roll, 2)
+    np.testing.assert_array_equal(got.data.action[:, 2:4], committed.action)
+    np.testing.assert_allclose(got.data.obs.imitator[:, 2:4], committed.obs.imitator)
+    assert not np.array_equal(np.asarray(committed.action), np.asarray(online.action))
 
 
 def test_sampled_policy_latents_scatter_around_the_posterior_mean(tiny_config):

@@ -1,4 +1,5 @@
-"""Actors: the expert, the recurrent naive-BC / oracle policy, and the deconfounded imitator of Algorithm 2."""
+"""Actors: the expert, the recurrent naive-BC / oracle policy, the deconfounded imitator of Algorithm 2, and its
+policy with a θ-hat held fixed per episode."""
 
 from __future__ import annotations
 
@@ -101,3 +102,20 @@ class DeconfoundedActor:
         if self.standardise:
             mean = standardise(mean, params["latent_stats"])
         return carry, self.policy.apply(params["policy"], s, mean)
+
+
+@dataclasses.dataclass(frozen=True)
+class FixedLatentActor:
+    """π_η on the imitator's view with a given θ-hat per episode: params {"policy": ..., "z": [B, L]} (z as the policy
+    reads it: standardised where the policy reads θ-hat standardised)."""
+
+    policy: LatentPolicy
+
+    def init_carry(self, batch: int) -> jax.Array:
+        """No recurrent state."""
+        return jnp.zeros((batch, 0), jnp.float32)
+
+    def __call__(self, params: dict[str, Any], carry: jax.Array, obs: Observation, prev_action: jax.Array):
+        """The policy head on (s, z)."""
+        del prev_action  # Unused: the policy is Markov.
+        return carry, self.policy.apply(params["policy"], obs.imitator, params["z"])

@@ -17,6 +17,7 @@ POLICY_LATENTS = ("current", "final", "random_step")
 LATENT_DRAWS = ("mean", "sample")
 FUSIONS = ("late", "early")
 LATENT_NORMS = ("none", "expert")
+EXPLORE_LATENTS = ("online", "mixed")
 BC_MEMORIES = ("gru", "none")
 DISC_INPUTS = ("next", "transition")
 GAIL_REWARDS = ("discriminator", "env")
@@ -87,6 +88,13 @@ class ModelConfig:
     # with its view. A sharp posterior can sit far from the prior with a spread of a few hundredths, where beside a
     # standardised observation the policy barely reads it (docs/results.md).
     latent_norm: str = _field("none", LATENT_NORMS)
+    # dil's exploration policy (the episodes q_phi is trained on): "online" (the paper's: pi_eta on the current
+    # posterior mean, Algorithm 2) or "mixed" (half the episodes so; in the other half pi_eta holds θ-hat fixed at the
+    # final posterior mean of an expert-buffer episode drawn uniformly, so the imitator commits to θs spread like the
+    # expert's whatever the episode's own θ: the data stay θ-independent, and they show the dynamics at every state
+    # the expert's θs lead to, e.g. every target speed against every θ on the cheetah, not only where the imitator's
+    # own belief takes it).
+    explore_latent: str = _field("online", EXPLORE_LATENTS)
 
 
 @dataclasses.dataclass(frozen=True)

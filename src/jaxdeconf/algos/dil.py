@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import optax
 
 from jaxdeconf import losses
-from jaxdeconf.actors import DeconfoundedActor
+from jaxdeconf.actors import DeconfoundedActor, FixedLatentActor
 from jaxdeconf.algos.base import (
     Algorithm,
     Learner,
@@ -123,11 +123,27 @@ class Deconfounded(Algorithm):
         return {**params, "latent_stats": state.latent_stats} if self.standardises else params
 
     def collect_explore(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
-        """The imitator's own episodes (the exploration policy is pi_eta on the current posterior mean)."""
+        """The imitator's own episodes: pi_eta on the current posterior mean (Algorithm 2) and, with
+        ``model.explore_latent=mixed``, half of them with θ-hat held at an expert episode's (``committed_episodes``)."""
         n = self.config.train.episodes_per_iter
-        traj, _ = rollout(self.env, self.env_params, self.actor(), self.actor_params(state), key, n)
-        state = state.replace(explore_buffer=buffer_add(state.explore_buffer, traj))
-        return state, {"train_return": jnp.mean(jnp.sum(traj.reward, axis=0))}
+        committed = n // 2 if self.config.model.explore_latent == "mixed" else 0
+        traj, _ = rollout(self.env, self.env_params, self.actor(), self.actor_params(state), key, n - committed)
+        buffer = buffer_add(state.explore_buffer, traj)
+        if committed:
+            buffer = buffer_add(buffer, self.committed_episodes(state, jax.random.fold_in(key, 1), committed))
+        return state.replace(explore_buffer=buffer), {"train_return": jnp.mean(jnp.sum(traj.reward, axis=0))}
+
+    def committed_episodes(self, state: TrainState, key: jax.Array, n: int) -> Trajectory:
+        """``n`` episodes of pi_eta with θ-hat fixed per episode at the final posterior mean of an expert-buffer episode
+        drawn uniformly (as the policy reads θ-hat: standardised where it is). The draw ignores the episode's own θ."""
+        k_pick, k_roll = jax.random.split(key)
+        picked = buffer_sample(state.expert_buffer, k_pick, n)
+        z = training_latents(self.posterior_means(state, picked), picked.valid, "final")[0]
+        if self.standardises:
+            z = standardise(z, state.latent_stats)
+        _, _, policy = self.networks
+        params = {"policy": state.policy.params, "z": z}
+        return rollout(self.env, self.env_params, FixedLatentActor(policy), params, k_roll, n)[0]
 
     @property
     def elbo_fn(self) -> Any:
