@@ -5,7 +5,7 @@
 Restores one seed's last ``dil`` checkpoint from a results folder and rolls out, from the same starts and θ, (1) the
 expert, (2) the cloned policy π_η(a | s, θ-hat) with θ-hat held fixed at the posterior mean after the expert's own
 episode (the belief the policy could at best have), and (3) the imitator as deployed, reading its own online belief
-(Algorithm 2). Prints each one's mean return and the env's per-step
+(Algorithm 2). Prints each one's mean return, its sum over each quarter of the episode, and the env's per-step
 extras averaged over the episodes at a few steps. When (2) is no better than (3), better inference cannot close the
 gap: the policy's cloning is what falls short.
 """
@@ -22,6 +22,7 @@ import numpy as np
 from jaxdeconf.actors import ExpertActor, FixedLatentActor
 from jaxdeconf.config import ConfigError
 from jaxdeconf.data import rollout
+from jaxdeconf.models import standardise
 from jaxdeconf.policy import load_state
 
 STEPS = (5, 10, 25, 50, 100, 150, 199)
@@ -37,6 +38,8 @@ def rollouts(folder: str, seed: int, episodes: int) -> dict[str, Any]:
     def run(state: Any, key: jax.Array) -> dict[str, Any]:
         expert, _ = rollout(alg.env, alg.env_params, ExpertActor(alg.env, alg.env_params), None, key, episodes)
         z = alg.posterior_means(state, expert)[-1]
+        if alg.standardises:  # As the policy reads θ-hat (model.latent_norm=expert).
+            z = standardise(z, state.latent_stats)
         fixed, _ = rollout(alg.env, alg.env_params, FixedLatentActor(policy),
                            {"policy": state.policy.params, "z": z}, key, episodes)
         online, _ = rollout(alg.env, alg.env_params, alg.actor(), alg.actor_params(state), key, episodes)
@@ -57,7 +60,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     for name, traj in result.items():
-        line = f"{name}: return {float(np.asarray(traj.reward).sum(0).mean()):.1f}"
+        reward = np.asarray(traj.reward)
+        quarters = [float(q.sum(0).mean()) for q in np.array_split(reward, 4)]
+        line = f"{name}: return {reward.sum(0).mean():.1f} (by quarter " + " ".join(f"{q:.1f}" for q in quarters) + ")"
         for extra, values in traj.extras.items():
             per_step = np.asarray(values).mean(1)
             line += f"; {extra} at steps {STEPS}: " + " ".join(f"{per_step[t]:.2f}" for t in STEPS

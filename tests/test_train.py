@@ -136,6 +136,25 @@ def test_mixed_exploration_commits_half_the_episodes_to_an_expert_latent(tiny_co
     assert not np.array_equal(np.asarray(committed.action), np.asarray(online.action))
 
 
+def test_elbo_batch_from_both_buffers(tiny_config):
+    """``encoder_data=both``: an ELBO batch holds batch_size whole episodes, the first half the imitator's own and the
+    rest expert episodes, each a distinct stored episode of its buffer; ``explore`` draws from the own buffer only."""
+    both = build_algorithm(tiny_config(**{"model.policy_latent": "final", "train.encoder_data": "both"}), "dil")
+    state = both.init(jax.random.key(0))
+    state, _ = both.collect_expert(state, jax.random.key(1))
+    state, _ = both.collect_explore(state, jax.random.key(2))
+
+    def sources(batch):
+        own, expert = (np.asarray(b.data.action[:, : int(b.size)]).T for b in (state.explore_buffer,
+                                                                               state.expert_buffer))
+        return [("own" if any((a == o).all() for o in own) else "") + ("expert" if any((a == e).all() for e in expert)
+                                                                       else "") for a in np.asarray(batch.action).T]
+
+    assert sources(both.elbo_batch(state, jax.random.key(3))) == ["own", "own", "expert", "expert"]
+    plain = build_algorithm(tiny_config(**{"model.policy_latent": "final"}), "dil")
+    assert sources(plain.elbo_batch(state, jax.random.key(3))) == ["own"] * 4
+
+
 def test_sampled_policy_latents_scatter_around_the_posterior_mean(tiny_config):
     """``policy_latent_draw=sample`` clones on θ-hat ~ q_phi: one draw per episode and key, different across keys,
     averaging to the latent the ``mean`` setting clones on, with q_phi's own posterior spread."""

@@ -18,6 +18,7 @@ LATENT_DRAWS = ("mean", "sample")
 FUSIONS = ("late", "early")
 LATENT_NORMS = ("none", "expert")
 EXPLORE_LATENTS = ("online", "mixed")
+ENCODER_DATA = ("explore", "both")
 BC_MEMORIES = ("gru", "none")
 DISC_INPUTS = ("next", "transition")
 GAIL_REWARDS = ("discriminator", "env")
@@ -118,6 +119,10 @@ class TrainConfig:
     policy_clip: float = _field(100.0, ">0")  # Global-norm gradient clip of the policy.
     beta: float = _field(1.0, ">=0")  # KL weight of the sequential ELBO (eq. 11).
     prediction_steps: int = _field(1, ">=1")  # K: how many future observations the decoder predicts from z_t.
+    # The episodes dil's ELBO steps sample: "explore" (the imitator's own, the paper's) or "both" (half of each batch
+    # from the expert buffer: the dynamics are the same whoever acts, and q_phi then codes θ the same way on the
+    # states either visits; its belief can also read θ off the expert's actions there, which online it cannot).
+    encoder_data: str = _field("explore", ENCODER_DATA)
     eval_episodes: int = _field(64, ">=1")  # Online evaluation episodes per chunk.
     # Seeds a device computes at once (vmapped); the rest of its seeds follow in turn. 0 (the default) vmaps all of a
     # device's seeds, faster than one at a time also on a CPU (docs/scale.md); 1 makes every seed's run the same

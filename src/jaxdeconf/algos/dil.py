@@ -170,13 +170,24 @@ class Deconfounded(Algorithm):
 
         def step(learner: Learner, step_key: jax.Array) -> tuple[Learner, dict[str, jax.Array]]:
             k_batch, k_noise = jax.random.split(step_key)
-            batch = buffer_sample(state.explore_buffer, k_batch, t.batch_size)
+            batch = self.elbo_batch(state, k_batch)
             feats = action_features(self.space, batch.action)
             (loss, metrics), grads = grad_fn(learner.params, batch.obs.imitator, feats, batch.valid, k_noise)
             return apply_gradients(learner, grads, self.encoder_tx), {"elbo_loss": loss, **metrics}
 
         learner, metrics = jax.lax.scan(step, state.encoder, jax.random.split(key, t.encoder_steps))
         return state.replace(encoder=learner), jax.tree.map(jnp.mean, metrics)
+
+    def elbo_batch(self, state: TrainState, key: jax.Array) -> Trajectory:
+        """Whole episodes for one ELBO step: ``batch_size`` of the imitator's own, or with ``train.encoder_data=both``
+        half (rounded up) of them and the rest from the expert buffer."""
+        t = self.config.train
+        if t.encoder_data == "explore":
+            return buffer_sample(state.explore_buffer, key, t.batch_size)
+        k_own, k_expert = jax.random.split(key)
+        own = buffer_sample(state.explore_buffer, k_own, t.batch_size - t.batch_size // 2)
+        expert = buffer_sample(state.expert_buffer, k_expert, t.batch_size // 2)
+        return jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=1), own, expert)
 
     def posterior(self, state: TrainState, traj: Trajectory) -> tuple[jax.Array, jax.Array]:
         """Posterior means and log-variances [T, B, L] of q_phi along ``traj``, detached: the policy never trains the
