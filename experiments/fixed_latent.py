@@ -5,9 +5,11 @@
 Restores one seed's last ``dil`` checkpoint from a results folder and rolls out, from the same starts and θ, (1) the
 expert, (2) the cloned policy π_η(a | s, θ-hat) with θ-hat held fixed at the posterior mean after the expert's own
 episode (the belief the policy could at best have), and (3) the imitator as deployed, reading its own online belief
-(Algorithm 2). Prints each one's mean return, its sum over each quarter of the episode, and the env's per-step
-extras averaged over the episodes at a few steps. When (2) is no better than (3), better inference cannot close the
-gap: the policy's cloning is what falls short.
+(Algorithm 2). Prints each one's mean return, its sum over each quarter of the episode, the env's per-step
+extras averaged over the episodes at a few steps, and how far (3)'s belief sits from the expert's final one on the same
+θ (``code_distance``). When (2) is no better than (3), better inference cannot close the gap: the policy's cloning is
+what falls short; when (2) is far better and the distance is as large as between unrelated θ, q_φ codes θ
+differently on the imitator's own episodes.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ import jax
 import numpy as np
 
 from jaxdeconf.actors import ExpertActor, FixedLatentActor
+from jaxdeconf.algos.dil import latent_moments, training_latents
 from jaxdeconf.config import ConfigError
 from jaxdeconf.data import rollout
 from jaxdeconf.models import standardise
@@ -28,8 +31,8 @@ from jaxdeconf.policy import load_state
 STEPS = (5, 10, 25, 50, 100, 150, 199)
 
 
-def rollouts(folder: str, seed: int, episodes: int) -> dict[str, Any]:
-    """The three rollouts' trajectories, from the same key (so the same starts and θ)."""
+def rollouts(folder: str, seed: int, episodes: int) -> tuple[Any, Any, dict[str, Any]]:
+    """(algorithm, the seed's state, the three rollouts' trajectories), from the same key (same starts and θ)."""
     alg, states, config = load_state(folder, "dil")
     state = jax.tree.map(lambda x: x[seed - config.seed_start], states)
     _, _, policy = alg.networks
@@ -45,7 +48,20 @@ def rollouts(folder: str, seed: int, episodes: int) -> dict[str, Any]:
         online, _ = rollout(alg.env, alg.env_params, alg.actor(), alg.actor_params(state), key, episodes)
         return {"expert": expert, "policy on the expert's final belief": fixed, "dil online": online}
 
-    return run(state, jax.random.key(seed + 1000))
+    return alg, state, run(state, jax.random.key(seed + 1000))
+
+
+def code_distance(alg: Any, state: Any, result: dict[str, Any]) -> tuple[list[float], float]:
+    """Mean per-dimension distance, in units of the spread of the expert buffer's final posterior means, from the
+    online belief at steps 25 / 100 / 199 to the expert's final belief on the same θ and start; and the same distance
+    between expert episodes of unrelated θ (every pair): how far online θ-hat sits from where π_η was cloned."""
+    data = state.expert_buffer.data
+    stats = latent_moments(training_latents(alg.posterior_means(state, data), data.valid, "final"), data.valid)
+    own = np.asarray(standardise(alg.posterior_means(state, result["dil online"]), stats))
+    final = np.asarray(standardise(alg.posterior_means(state, result["expert"]), stats))[-1]
+    steps = [t for t in (25, 100, 199) if t < len(own)]
+    unrelated = float(np.abs(final[:, None] - final[None]).mean())
+    return [float(np.abs(own[t] - final).mean()) for t in steps], unrelated
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -55,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, default=48)
     args = p.parse_args(argv)
     try:
-        result = rollouts(args.folder, args.seed, args.episodes)
+        alg, state, result = rollouts(args.folder, args.seed, args.episodes)
     except ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -68,6 +84,9 @@ def main(argv: list[str] | None = None) -> int:
             line += f"; {extra} at steps {STEPS}: " + " ".join(f"{per_step[t]:.2f}" for t in STEPS
                                                                if t < len(per_step))
         print(line)
+    online, unrelated = code_distance(alg, state, result)
+    print("online belief's distance to the expert's final one, same θ, at steps 25 / 100 / 199: "
+          + " / ".join(f"{d:.2f}" for d in online) + f"; between unrelated expert episodes: {unrelated:.2f}")
     return 0
 
 
