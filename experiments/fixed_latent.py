@@ -40,9 +40,7 @@ def rollouts(folder: str, seed: int, episodes: int) -> tuple[Any, Any, dict[str,
     @jax.jit
     def run(state: Any, key: jax.Array) -> dict[str, Any]:
         expert, _ = rollout(alg.env, alg.env_params, ExpertActor(alg.env, alg.env_params), None, key, episodes)
-        z = alg.posterior_means(state, expert)[-1]
-        if alg.standardises:  # As the policy reads θ-hat (model.latent_norm=expert).
-            z = standardise(z, state.latent_stats)
+        z = alg.as_policy_reads(state, alg.posterior_means(state, expert)[-1])
         fixed, _ = rollout(alg.env, alg.env_params, FixedLatentActor(policy),
                            {"policy": state.policy.params, "z": z}, key, episodes)
         online, _ = rollout(alg.env, alg.env_params, alg.actor(), alg.actor_params(state), key, episodes)

@@ -66,18 +66,23 @@ def apply_gradients(learner: Learner, grads: Any, tx: optax.GradientTransformati
     return Learner(params=optax.apply_updates(learner.params, updates), opt_state=opt_state)
 
 
+def masked_moments(x: jax.Array, valid: jax.Array, floor: float) -> tuple[jax.Array, jax.Array]:
+    """Per-dimension mean and standard deviation [D] (floored at ``floor``) of x [T, B, D] over the valid steps (mask
+    [T, B]) of episodes; empty buffer slots, all invalid, count for nothing."""
+    weight = valid.astype(x.dtype)[..., None]
+    count = jnp.maximum(weight.sum((0, 1)), 1.0)
+    mean = (x * weight).sum((0, 1)) / count
+    var = (((x - mean) ** 2) * weight).sum((0, 1)) / count
+    return mean, jnp.maximum(jnp.sqrt(var), floor)
+
+
 def observation_delta_scale(env: Environment, env_params: Any, episodes: int = 64) -> jax.Array:
     """Per-dimension standard deviation of the imitator's one-step observation changes on expert episodes (fixed
     key, so every seed and run uses the same scale), floored at 1e-3."""
     traj, _ = jax.jit(lambda k: rollout(env, env_params, ExpertActor(env, env_params), None, k, episodes))(
         jax.random.key(0))
     obs = traj.obs.imitator
-    delta = obs[1:] - obs[:-1]
-    mask = traj.valid[..., None].astype(jnp.float32)
-    count = jnp.maximum(mask.sum((0, 1)), 1.0)
-    mean = (delta * mask).sum((0, 1)) / count
-    var = (((delta - mean) ** 2) * mask).sum((0, 1)) / count
-    return jax.device_get(jnp.maximum(jnp.sqrt(var), 1e-3))
+    return jax.device_get(masked_moments(obs[1:] - obs[:-1], traj.valid, floor=1e-3)[1])
 
 
 def fit_view_normalizer(env: Environment, env_params: Any, episodes: int = 64) -> NormalizedViews:
@@ -85,15 +90,11 @@ def fit_view_normalizer(env: Environment, env_params: Any, episodes: int = 64) -
     (floored at 1e-3) over ``episodes`` expert episodes drawn with a fixed key, identical for every seed and run."""
     traj, _ = jax.jit(lambda k: rollout(env, env_params, ExpertActor(env, env_params), None, k, episodes))(
         jax.random.key(1))
-    mask = traj.valid.astype(jnp.float32)[..., None]
-    mask = jnp.concatenate([jnp.ones_like(mask[:1]), mask])  # obs has T + 1 steps; the first is always real.
+    valid = jnp.concatenate([jnp.ones_like(traj.valid[:1]), traj.valid])  # obs has T + 1 steps; the first is real.
     stats = {}
     for view in ("imitator", "oracle"):
-        obs = getattr(traj.obs, view)
-        count = mask.sum((0, 1))
-        mean = (obs * mask).sum((0, 1)) / count
-        std = jnp.sqrt((((obs - mean) ** 2) * mask).sum((0, 1)) / count)
-        stats[view] = (np.asarray(mean), np.asarray(jnp.maximum(std, 1e-3)))
+        mean, std = masked_moments(getattr(traj.obs, view), valid, floor=1e-3)
+        stats[view] = (np.asarray(mean), np.asarray(std))
     return NormalizedViews(env, stats)
 
 

@@ -19,6 +19,7 @@ from jaxdeconf.algos.base import (
     TrainState,
     apply_gradients,
     make_optimizer,
+    masked_moments,
     observation_delta_scale,
 )
 from jaxdeconf.data import Trajectory, buffer_add, buffer_sample, rollout
@@ -112,6 +113,10 @@ class Deconfounded(Algorithm):
         """Whether the policy reads θ-hat standardised (``model.latent_norm=expert``)."""
         return self.config.model.latent_norm == "expert"
 
+    def as_policy_reads(self, state: TrainState, z: jax.Array) -> jax.Array:
+        """θ-hat as pi_eta reads it: standardised by the expert buffer's moments where it is, else as it is."""
+        return standardise(z, state.latent_stats) if self.standardises else z
+
     def actor(self) -> DeconfoundedActor:
         """Algorithm 2."""
         encoder, _, policy = self.networks
@@ -138,9 +143,7 @@ class Deconfounded(Algorithm):
         drawn uniformly (as the policy reads θ-hat: standardised where it is). The draw ignores the episode's own θ."""
         k_pick, k_roll = jax.random.split(key)
         picked = buffer_sample(state.expert_buffer, k_pick, n)
-        z = training_latents(self.posterior_means(state, picked), picked.valid, "final")[0]
-        if self.standardises:
-            z = standardise(z, state.latent_stats)
+        z = self.as_policy_reads(state, training_latents(self.posterior_means(state, picked), picked.valid, "final")[0])
         _, _, policy = self.networks
         params = {"policy": state.policy.params, "z": z}
         return rollout(self.env, self.env_params, FixedLatentActor(policy), params, k_roll, n)[0]
@@ -246,9 +249,7 @@ class Deconfounded(Algorithm):
         _, _, policy = self.networks
         if context is None:
             context = self.training_context(state, traj)
-        if self.standardises:
-            context = standardise(context, state.latent_stats)
-        return policy.apply(policy_params, traj.obs.imitator[: traj.horizon], context)
+        return policy.apply(policy_params, traj.obs.imitator[: traj.horizon], self.as_policy_reads(state, context))
 
 
 def training_latents(mean: jax.Array, valid: jax.Array, which: str, key: jax.Array | None = None) -> jax.Array:
@@ -275,10 +276,6 @@ def sample_latents(mean: jax.Array, std: jax.Array, key: jax.Array) -> jax.Array
 
 
 def latent_moments(latents: jax.Array, valid: jax.Array, floor: float = 1e-2) -> tuple[jax.Array, jax.Array]:
-    """Per-dimension mean and standard deviation [L] (floored at ``floor``) of latents [T, B, L] over the valid steps
-    (mask [T, B]) of episodes; empty buffer slots, all invalid, count for nothing."""
-    weight = valid.astype(latents.dtype)[..., None]
-    count = jnp.maximum(weight.sum((0, 1)), 1.0)
-    mean = (latents * weight).sum((0, 1)) / count
-    var = (((latents - mean) ** 2) * weight).sum((0, 1)) / count
-    return mean, jnp.maximum(jnp.sqrt(var), floor)
+    """Per-dimension mean and standard deviation [L] of latents [T, B, L] over valid steps (``masked_moments``), floored
+    at ``floor`` so that a dimension the expert's θ-hats barely move is not blown up when standardised."""
+    return masked_moments(latents, valid, floor)
