@@ -180,6 +180,26 @@ def test_deconfounded_actor_matches_teacher_forced_posterior(deltas, kind):
         np.testing.assert_allclose(out, expected[t], rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.parametrize("kind", ["gru", "evidence", "filter"])
+def test_encoder_without_actions_ignores_them_and_keeps_its_parameters(kind):
+    """``model.encoder_actions=false``: the posterior along a sequence is the same whatever the previous actions, and
+    equals the action-reading encoder's (same parameters: the tree is unchanged) fed zeros in their place; the
+    action-reading encoder's posterior does depend on them."""
+    obs = jax.random.normal(jax.random.key(0), (7, 3, 4))
+    acts = [jax.nn.one_hot(jax.random.randint(jax.random.key(k), (7, 3), 0, 5), 5) for k in (1, 2)]
+    blind, reading = make_encoder(kind, 8, 4, 6, 2, read_actions=False), make_encoder(kind, 8, 4, 6, 2)
+    params = reading.init(jax.random.key(3), obs[0], acts[0][0])
+    assert jax.tree.structure(blind.init(jax.random.key(3), obs[0], acts[0][0])) == jax.tree.structure(params)
+    mean_a, logvar_a = losses.encoder_scan(blind, params, obs, acts[0])
+    mean_b, logvar_b = losses.encoder_scan(blind, params, obs, acts[1])
+    np.testing.assert_array_equal(mean_a, mean_b)
+    np.testing.assert_array_equal(logvar_a, logvar_b)
+    mean_zero, _ = losses.encoder_scan(reading, params, obs, jnp.zeros_like(acts[0]))
+    np.testing.assert_allclose(mean_a, mean_zero, rtol=1e-6, atol=1e-7)
+    mean_read, _ = losses.encoder_scan(reading, params, obs, acts[0])
+    assert float(jnp.max(jnp.abs(mean_read - mean_a))) > 1e-4
+
+
 def test_early_fusion_policy_is_the_markov_oracle_network_on_obs_and_theta_hat():
     """``policy_fusion=early`` reads θ-hat beside the observation at the input: with the same parameters it is the
     Markov oracle's network (``bc_memory=none``: an empty latent) applied to [obs, θ-hat]; "late" is not."""

@@ -59,6 +59,10 @@ class ModelConfig:
     # that the decoder scores: the evidence about theta is in transitions, and small ones (an engine's kick) are a few
     # percent of an observation's spread, hard for a small GRU to difference out of consecutive inputs.
     encoder_deltas: bool = True
+    # Whether q_phi reads the previous action beside each observation (the paper's). On the imitator's own episodes
+    # the action is a function of the imitator's belief, so q_phi can read its own belief back off it; where an env's
+    # θ shows in the transitions alone (the locomotion cues), False makes it infer θ from them only.
+    encoder_actions: bool = True
     # q_phi's recurrence: "gru" (the paper's), "evidence" (a product of per-step Gaussian factors) or "filter" (the
     # same product with each factor read off the step and the belief so far: assumed-density filtering; models.py).
     encoder: str = _field("gru", ENCODERS)

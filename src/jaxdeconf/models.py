@@ -134,7 +134,10 @@ class StepInput(nn.Module):
         self.fuse = MLP((self.width,))
 
     def fused(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
-        """[..., width] for any leading shape: the observation and the action that led to it, fused."""
+        """[..., width] for any leading shape: the observation and the action that led to it, fused. An encoder built
+        with ``read_actions=False`` reads zeros in place of the action (``model.encoder_actions``)."""
+        if not getattr(self, "read_actions", True):
+            prev_action = jnp.zeros_like(prev_action)
         return self.fuse(self.interact(self.obs_net(obs), self.action_net(prev_action)))
 
 
@@ -143,6 +146,7 @@ class Encoder(StepInput):
 
     hidden: int
     latent: int
+    read_actions: bool = True  # False: q_phi reads the transitions alone, not the action that led to each.
 
     def setup(self) -> None:
         """Sub-networks shared by ``embed`` and ``recur``."""
@@ -178,6 +182,7 @@ class EvidenceEncoder(StepInput):
     """
 
     latent: int
+    read_actions: bool = True  # False: q_phi reads the transitions alone, not the action that led to each.
 
     @property
     def hidden(self) -> int:
@@ -239,11 +244,14 @@ class FilterEncoder(EvidenceEncoder):
         return carry, self.belief(carry)
 
 
-def make_encoder(kind: str, width: int, action_embed: int, gru: int, latent: int) -> Encoder | EvidenceEncoder:
-    """q_phi by ``model.encoder``'s name: "gru" (hidden size ``gru``), "evidence" or "filter"."""
+def make_encoder(
+    kind: str, width: int, action_embed: int, gru: int, latent: int, read_actions: bool = True
+) -> Encoder | EvidenceEncoder:
+    """q_phi by ``model.encoder``'s name: "gru" (hidden size ``gru``), "evidence" or "filter"; with ``read_actions``
+    False it ignores the previous action (``model.encoder_actions``)."""
     if kind == "gru":
-        return Encoder(width, action_embed, gru, latent)
-    return {"evidence": EvidenceEncoder, "filter": FilterEncoder}[kind](width, action_embed, latent)
+        return Encoder(width, action_embed, gru, latent, read_actions)
+    return {"evidence": EvidenceEncoder, "filter": FilterEncoder}[kind](width, action_embed, latent, read_actions)
 
 
 class Decoder(nn.Module):
