@@ -60,7 +60,7 @@ class ModelConfig:
     # percent of an observation's spread, hard for a small GRU to difference out of consecutive inputs.
     encoder_deltas: bool = True
     # Whether q_phi reads the previous action beside each observation (the paper's). On the imitator's own episodes
-    # the action is a function of the imitator's belief, so q_phi can read its own belief back off it; where an env's
+    # the action is a function of the imitator's belief, so q_phi may read its own belief back off it; where an env's
     # θ shows in the transitions alone (the locomotion cues), False makes it infer θ from them only.
     encoder_actions: bool = True
     # q_phi's recurrence: "gru" (the paper's), "evidence" (a product of per-step Gaussian factors) or "filter" (the
