@@ -133,10 +133,11 @@ class StepInput(nn.Module):
         self.interact = Interaction()
         self.fuse = MLP((self.width,))
 
-    def fused(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
-        """[..., width] for any leading shape: the observation and the action that led to it, fused. An encoder built
-        with ``read_actions=False`` reads zeros in place of the action (``model.encoder_actions``)."""
-        if not getattr(self, "read_actions", True):
+    def fused(self, obs: jax.Array, prev_action: jax.Array, read_action: bool = True) -> jax.Array:
+        """[..., width] for any leading shape: the observation and the action that led to it, fused; with
+        ``read_action`` False zeros in place of the action (an encoder's ``read_actions``, ``model.encoder_actions``),
+        so the parameters are the same either way."""
+        if not read_action:
             prev_action = jnp.zeros_like(prev_action)
         return self.fuse(self.interact(self.obs_net(obs), self.action_net(prev_action)))
 
@@ -156,7 +157,7 @@ class Encoder(StepInput):
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
         """GRU inputs [..., width] for any leading shape."""
-        return self.fused(obs, prev_action)
+        return self.fused(obs, prev_action, self.read_actions)
 
     def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         """One GRU step: carry [B, hidden], x [B, E] -> new carry, (mean, logvar) each [B, latent]."""
@@ -196,7 +197,7 @@ class EvidenceEncoder(StepInput):
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
         """One factor per step [..., 2 * latent]: (p m, p) with p = softplus(.) > 0."""
-        mean, raw = jnp.split(self.out(self.fused(obs, prev_action)), 2, axis=-1)
+        mean, raw = jnp.split(self.out(self.fused(obs, prev_action, self.read_actions)), 2, axis=-1)
         precision = nn.softplus(raw)
         return jnp.concatenate([precision * mean, precision], axis=-1)
 
@@ -234,7 +235,7 @@ class FilterEncoder(EvidenceEncoder):
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
         """The step's fused features [..., width]; the factor needs the belief, so it is formed in ``recur``."""
-        return self.fused(obs, prev_action)
+        return self.fused(obs, prev_action, self.read_actions)
 
     def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         """Add the factor of step x [B, width] given the belief in carry [B, 2L] -> new carry, (mean, logvar)."""
