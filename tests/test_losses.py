@@ -200,6 +200,26 @@ def test_encoder_without_actions_ignores_them_and_keeps_its_parameters(kind):
     assert float(jnp.max(jnp.abs(mean_read - mean_a))) > 1e-4
 
 
+def test_additive_decoder_shifts_every_state_alike_and_joint_keeps_its_parameters():
+    """``model.decoder_latent=additive``: out(z, s, a) - out(z', s, a) is the same for every (s, a), so what θ-hat
+    implies (e.g. the speed at which a cue's logit changes sign) cannot depend on the state; the joint decoder's
+    differences do depend on it, and its parameter tree is the one the joint decoder always had."""
+    z = jnp.broadcast_to(jax.random.normal(jax.random.key(0), (2, 1, 3)), (2, 5, 3))  # Two θ-hats, five states each.
+    obs, act = jax.random.normal(jax.random.key(1), (5, 4)), jax.random.normal(jax.random.key(2), (5, 2))
+    additive, joint = Decoder(8, 4, 4, "additive"), Decoder(8, 4, 4)
+    for decoder in (additive, joint):
+        params = decoder.init(jax.random.key(3), z[0], obs, act)
+        shift = decoder.apply(params, z[1], obs, act) - decoder.apply(params, z[0], obs, act)  # [5 states, 4]
+        spread = float(jnp.max(jnp.abs(shift - shift[:1])))
+        if decoder is additive:
+            assert spread < 1e-5
+            assert float(jnp.max(jnp.abs(shift))) > 1e-2  # z does shift the prediction.
+        else:
+            assert spread > 1e-2
+            assert sorted(params["params"]) == ["Dense_0", "Dense_1", "Interaction_0", "MLP_0", "MLP_1"]
+            assert params["params"]["MLP_0"]["Dense_0"]["kernel"].shape == (4, 8)  # MLP_0 reads the observation.
+
+
 def test_early_fusion_policy_is_the_markov_oracle_network_on_obs_and_theta_hat():
     """``policy_fusion=early`` reads θ-hat beside the observation at the input: with the same parameters it is the
     Markov oracle's network (``bc_memory=none``: an empty latent) applied to [obs, θ-hat]; "late" is not."""

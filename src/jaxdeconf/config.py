@@ -16,6 +16,7 @@ GROUP_LIKELIHOODS = ("declared", "gaussian")
 POLICY_LATENTS = ("current", "final", "random_step")
 LATENT_DRAWS = ("mean", "sample")
 FUSIONS = ("late", "early")
+DECODER_LATENTS = ("joint", "additive")
 LATENT_NORMS = ("none", "expert")
 EXPLORE_LATENTS = ("online", "mixed")
 ENCODER_DATA = ("explore", "both")
@@ -70,6 +71,12 @@ class ModelConfig:
     # body and the cue): "sum" adds every dimension's NLL, "group_mean" averages within each group and adds the groups
     # (the reference code's per-key MSE). One-group envs (bandit, LunarLander) are the same under both.
     decoder_weighting: str = _field("sum", WEIGHTINGS)
+    # How the decoder reads θ-hat (``models.Decoder``): "joint" (with the observation and the action through one MLP,
+    # the reference code's; θ may change what an action does, as LunarLander's swapped engines) or "additive" (its own
+    # MLP, added to the state-action MLP's output: θ-hat shifts the prediction the same way in every state). Additive,
+    # the speed at which the cheetah's predicted cue flips sign is a function of θ-hat alone, so q_phi cannot code the
+    # same θ differently on the states the imitator visits and on the expert's.
+    decoder_latent: str = _field("joint", DECODER_LATENTS)
     # Each group's likelihood: "declared" (the env's: e.g. Bernoulli for a ±1 indicator) or "gaussian" for all.
     group_likelihood: str = _field("declared", GROUP_LIKELIHOODS)
     # The θ-hat dil's policy is cloned on, at every step of an expert episode: "current" (q_phi's posterior mean at

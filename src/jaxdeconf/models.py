@@ -256,17 +256,26 @@ def make_encoder(
 
 
 class Decoder(nn.Module):
-    """p_psi(s_{t+k+1} | z_t, s_{t+k}, a_{t+k}): the next observation's mean or logits."""
+    """p_psi(s_{t+k+1} | z_t, s_{t+k}, a_{t+k}): the next observation's mean or logits.
+
+    ``latent="joint"`` reads z with the observation and the action through one MLP (z may change what an action does);
+    ``"additive"`` gives z its own MLP whose output is added to the state-action MLP's, so the outputs are
+    f(s, a) + g(z) and z shifts them alike in every state (``model.decoder_latent``)."""
 
     width: int
     action_embed: int
     obs_size: int
+    latent: str = "joint"
 
     @nn.compact
     def __call__(self, z: jax.Array, obs: jax.Array, action: jax.Array) -> jax.Array:
         """Predict the next observation's parameters from the latent, the current observation and action."""
-        latent_action = Interaction()(z, nn.Dense(self.action_embed)(action))
-        h = jnp.concatenate([MLP((self.width, self.width))(obs), latent_action], axis=-1)
+        embedded = nn.Dense(self.action_embed)(action)
+        if self.latent == "additive":
+            h = jnp.concatenate([MLP((self.width, self.width))(obs), embedded], axis=-1)
+            state_part = nn.Dense(self.obs_size)(MLP((self.width, self.width))(h))
+            return state_part + nn.Dense(self.obs_size)(MLP((self.width,))(z))
+        h = jnp.concatenate([MLP((self.width, self.width))(obs), Interaction()(z, embedded)], axis=-1)
         return nn.Dense(self.obs_size)(MLP((self.width, self.width))(h))
 
 

@@ -67,7 +67,7 @@ class Deconfounded(Algorithm):
         size = self.env.obs_sizes(self.env_params).imitator
         return (
             make_encoder(m.encoder, m.width, m.action_embed, m.gru, m.latent, m.encoder_actions),
-            Decoder(m.width, m.action_embed, size),
+            Decoder(m.width, m.action_embed, size, m.decoder_latent),
             LatentPolicy(m.width, head_size(self.space), m.policy_fusion),
         )
 
