@@ -25,6 +25,7 @@ from jaxdeconf.actors import ExpertActor, FixedLatentActor
 from jaxdeconf.algos.dil import latent_moments, training_latents
 from jaxdeconf.config import ConfigError
 from jaxdeconf.data import rollout
+from jaxdeconf.diagnostics import episode_theta
 from jaxdeconf.models import standardise
 from jaxdeconf.policy import load_state
 
@@ -62,6 +63,27 @@ def code_distance(alg: Any, state: Any, result: dict[str, Any]) -> tuple[list[fl
     return [float(np.abs(own[t] - final).mean()) for t in steps], unrelated
 
 
+def cross_probe(alg: Any, state: Any, result: dict[str, Any]) -> tuple[list[float], float]:
+    """R² of θ read off the online belief at steps 25 / 100 / 199 by the linear map fitted from the expert buffer's
+    final posterior means to their θ (least squares), and that map's R² on the final beliefs of this run's fresh
+    expert episodes: whether θ-hat online means what it means where π_η was cloned (a probe fitted on the online
+    beliefs themselves, as ``diagnostics.png``'s, finds θ wherever it is coded)."""
+    data = state.expert_buffer.data
+    kept = np.asarray(data.valid[0])
+    fit = np.asarray(training_latents(alg.posterior_means(state, data), data.valid, "final")[0])[kept]
+    theta = np.asarray(episode_theta(alg.env, alg.env_params, data.obs.oracle[0]))[kept]
+    coef, *_ = np.linalg.lstsq(np.c_[fit, np.ones(len(fit))], theta, rcond=None)
+
+    def r2(z: np.ndarray, traj: Any) -> float:
+        target = np.asarray(episode_theta(alg.env, alg.env_params, traj.obs.oracle[0]))
+        resid = ((np.c_[z, np.ones(len(z))] @ coef - target) ** 2).sum()
+        return float(1.0 - resid / ((target - target.mean(0)) ** 2).sum())
+
+    own = np.asarray(alg.posterior_means(state, result["dil online"]))
+    expert = np.asarray(alg.posterior_means(state, result["expert"]))[-1]
+    return [r2(own[t], result["dil online"]) for t in (25, 100, 199) if t < len(own)], r2(expert, result["expert"])
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("folder")
@@ -85,6 +107,10 @@ def main(argv: list[str] | None = None) -> int:
     online, unrelated = code_distance(alg, state, result)
     print("online belief's distance to the expert's final one, same θ, at steps 25 / 100 / 199: "
           + " / ".join(f"{d:.2f}" for d in online) + f"; between unrelated expert episodes: {unrelated:.2f}")
+    online, expert = cross_probe(alg, state, result)
+    print("θ read off the online belief at steps 25 / 100 / 199 by the expert buffer's linear map (R²): "
+          + " / ".join(f"{r:.2f}" for r in online) + f"; the same map on fresh expert episodes' final beliefs: "
+          f"{expert:.2f}")
     return 0
 
 
