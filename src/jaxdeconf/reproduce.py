@@ -246,7 +246,7 @@ PARTS = [
     Part("figure1", "Figure 1: rollouts", 120, run_figure1, section_figure1),
     Part("appendix_a_learned", "Appendix A, learned", 1500, run_learned, section_learned),
     *[Part(env, f"{env} (Figure 4)", est, run_mdp(env), section_mdp(env))
-      for env, est in zip(MDPS, (7800, 9000, 9000), strict=True)],
+      for env, est in zip(MDPS, (3700, 4700, 3100), strict=True)],
 ]
 
 
