@@ -74,8 +74,8 @@ class ModelConfig:
     # How the decoder reads θ-hat (``models.Decoder``): "joint" (with the observation and the action through one MLP,
     # the reference code's; θ may change what an action does, as LunarLander's swapped engines) or "additive" (its own
     # MLP, added to the state-action MLP's output: θ-hat shifts the prediction the same way in every state). Additive,
-    # the speed at which the cheetah's predicted cue flips sign is a function of θ-hat alone, so q_phi cannot code the
-    # same θ differently on the states the imitator visits and on the expert's.
+    # the speed at which the cheetah's predicted cue flips sign is a function of θ-hat alone; there it did worse and
+    # q_phi's codes on the imitator's and the expert's episodes stayed as far apart (docs/results.md).
     decoder_latent: str = _field("joint", DECODER_LATENTS)
     # Each group's likelihood: "declared" (the env's: e.g. Bernoulli for a ±1 indicator) or "gaussian" for all.
     group_likelihood: str = _field("declared", GROUP_LIKELIHOODS)
