@@ -7,9 +7,10 @@ expert, (2) the cloned policy π_η(a | s, θ-hat) with θ-hat held fixed at the
 episode (the belief the policy could at best have), and (3) the imitator as deployed, reading its own online belief
 (Algorithm 2). Prints each one's mean return, its sum over each quarter of the episode, the env's per-step
 extras averaged over the episodes at a few steps, and how far (3)'s belief sits from the expert's final one on the same
-θ (``code_distance``). When (2) is no better than (3), better inference cannot close the gap: the policy's cloning is
-what falls short; when (2) is far better and the distance is as large as between unrelated θ, q_φ codes θ
-differently on the imitator's own episodes.
+θ (``code_distance``), and how well the expert buffer's linear map from final beliefs to θ reads θ off (3)'s belief
+(``cross_probe``). When (2) is no better than (3), better inference cannot close the gap: the policy's cloning is
+what falls short; when (2) is far better, the distance is as large as between unrelated θ and the expert's map reads
+little of θ online, q_φ codes θ differently on the imitator's own episodes.
 """
 
 from __future__ import annotations
@@ -50,38 +51,43 @@ def rollouts(folder: str, seed: int, episodes: int) -> tuple[Any, Any, dict[str,
     return alg, state, run(state, jax.random.key(seed + 1000))
 
 
-def code_distance(alg: Any, state: Any, result: dict[str, Any]) -> tuple[list[float], float]:
+def beliefs(alg: Any, state: Any, result: dict[str, Any]) -> dict[str, Any]:
+    """q_φ's posterior means, encoded once for both measures below: the expert buffer's final ones as the policy was
+    cloned on them ([T, B, L], with the buffer), the online ones along (3) [T, B, L], the expert's final ones [B, L]."""
+    data = state.expert_buffer.data
+    return {"data": data, "buffer": training_latents(alg.posterior_means(state, data), data.valid, "final"),
+            "own": alg.posterior_means(state, result["dil online"]),
+            "expert": alg.posterior_means(state, result["expert"])[-1]}
+
+
+def code_distance(b: dict[str, Any]) -> tuple[list[float], float]:
     """Mean per-dimension distance, in units of the spread of the expert buffer's final posterior means, from the
     online belief at steps 25 / 100 / 199 to the expert's final belief on the same θ and start; and the same distance
     between expert episodes of unrelated θ (every pair): how far online θ-hat sits from where π_η was cloned."""
-    data = state.expert_buffer.data
-    stats = latent_moments(training_latents(alg.posterior_means(state, data), data.valid, "final"), data.valid)
-    own = np.asarray(standardise(alg.posterior_means(state, result["dil online"]), stats))
-    final = np.asarray(standardise(alg.posterior_means(state, result["expert"]), stats))[-1]
+    stats = latent_moments(b["buffer"], b["data"].valid)
+    own, final = np.asarray(standardise(b["own"], stats)), np.asarray(standardise(b["expert"], stats))
     steps = [t for t in (25, 100, 199) if t < len(own)]
     unrelated = float(np.abs(final[:, None] - final[None]).mean())
     return [float(np.abs(own[t] - final).mean()) for t in steps], unrelated
 
 
-def cross_probe(alg: Any, state: Any, result: dict[str, Any]) -> tuple[list[float], float]:
+def cross_probe(alg: Any, b: dict[str, Any], result: dict[str, Any]) -> tuple[list[float], float]:
     """R² of θ read off the online belief at steps 25 / 100 / 199 by the linear map fitted from the expert buffer's
     final posterior means to their θ (least squares), and that map's R² on the final beliefs of this run's fresh
     expert episodes: whether θ-hat online means what it means where π_η was cloned (a probe fitted on the online
     beliefs themselves, as ``diagnostics.png``'s, finds θ wherever it is coded)."""
-    data = state.expert_buffer.data
-    kept = np.asarray(data.valid[0])
-    fit = np.asarray(training_latents(alg.posterior_means(state, data), data.valid, "final")[0])[kept]
-    theta = np.asarray(episode_theta(alg.env, alg.env_params, data.obs.oracle[0]))[kept]
-    coef, *_ = np.linalg.lstsq(np.c_[fit, np.ones(len(fit))], theta, rcond=None)
+    theta_of = lambda traj: np.asarray(episode_theta(alg.env, alg.env_params, traj.obs.oracle[0]))  # noqa: E731
+    kept = np.asarray(b["data"].valid[0])
+    fit = np.asarray(b["buffer"][0])[kept]
+    coef, *_ = np.linalg.lstsq(np.c_[fit, np.ones(len(fit))], theta_of(b["data"])[kept], rcond=None)
 
-    def r2(z: np.ndarray, traj: Any) -> float:
-        target = np.asarray(episode_theta(alg.env, alg.env_params, traj.obs.oracle[0]))
+    def r2(z: np.ndarray, target: np.ndarray) -> float:
         resid = ((np.c_[z, np.ones(len(z))] @ coef - target) ** 2).sum()
         return float(1.0 - resid / ((target - target.mean(0)) ** 2).sum())
 
-    own = np.asarray(alg.posterior_means(state, result["dil online"]))
-    expert = np.asarray(alg.posterior_means(state, result["expert"]))[-1]
-    return [r2(own[t], result["dil online"]) for t in (25, 100, 199) if t < len(own)], r2(expert, result["expert"])
+    own, online_theta = np.asarray(b["own"]), theta_of(result["dil online"])
+    steps = [t for t in (25, 100, 199) if t < len(own)]
+    return [r2(own[t], online_theta) for t in steps], r2(np.asarray(b["expert"]), theta_of(result["expert"]))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -104,10 +110,11 @@ def main(argv: list[str] | None = None) -> int:
             line += f"; {extra} at steps {STEPS}: " + " ".join(f"{per_step[t]:.2f}" for t in STEPS
                                                                if t < len(per_step))
         print(line)
-    online, unrelated = code_distance(alg, state, result)
+    b = beliefs(alg, state, result)
+    online, unrelated = code_distance(b)
     print("online belief's distance to the expert's final one, same θ, at steps 25 / 100 / 199: "
           + " / ".join(f"{d:.2f}" for d in online) + f"; between unrelated expert episodes: {unrelated:.2f}")
-    online, expert = cross_probe(alg, state, result)
+    online, expert = cross_probe(alg, b, result)
     print("θ read off the online belief at steps 25 / 100 / 199 by the expert buffer's linear map (R²): "
           + " / ".join(f"{r:.2f}" for r in online) + f"; the same map on fresh expert episodes' final beliefs: "
           f"{expert:.2f}")
