@@ -13,8 +13,9 @@ from conftest import assert_rows_close
 
 from jaxdeconf.actors import FixedLatentActor
 from jaxdeconf.algos import NAMES as ALGOS
-from jaxdeconf.algos.dil import Deconfounded, latent_moments, training_latents
+from jaxdeconf.algos.dil import Deconfounded, decoder_posterior_mean, latent_moments, training_latents
 from jaxdeconf.data import buffer_add, buffer_indices, buffer_sample, replay, rollout
+from jaxdeconf.models import action_features
 from jaxdeconf.train import build_algorithm, compiled_chunk, over_seeds, seed_keys, train_algorithm
 
 
@@ -174,6 +175,48 @@ def test_sampled_policy_latents_scatter_around_the_posterior_mean(tiny_config):
     np.testing.assert_allclose(draws[:, 0].std(0), std, rtol=0.1)
     with pytest.raises(ValueError, match="needs a key"):
         algo.training_context(state, data)
+
+
+def test_decoder_posterior_mean_hand_values():
+    """Codes 0, 1 and 5 (5 not yet filled) and a unit-Gaussian toy decoder nll = (obs_t - z)^2 / 2: an episode at
+    1, 1 (a third step at 100, invalid) has log-likelihood -1 under code 0 and 0 under code 1, so its posterior mean
+    is e / (1 + e); one at 0, 0 has 0 and -1, so 1 / (1 + e)."""
+    particles = jnp.array([[0.0], [1.0], [5.0]])
+    filled = jnp.array([True, True, False])
+
+    def nll(z, obs, feats, valid):
+        return 0.5 * (obs[:-1, :, 0] - z[..., 0]) ** 2
+
+    obs = jnp.array([[1.0, 0.0], [1.0, 0.0], [100.0, 100.0], [0.0, 0.0]])[..., None]  # [T+1=4, B=2, 1]
+    feats = jnp.zeros((3, 2, 1))
+    valid = jnp.array([[True, True], [True, True], [False, False]])
+    got = decoder_posterior_mean(nll, particles, filled, obs, feats, valid)
+    e = np.e
+    np.testing.assert_allclose(got[:, 0], [e / (1 + e), 1 / (1 + e)], rtol=1e-6)
+
+
+def test_matched_latents_equal_a_loop_over_codes_and_episodes(tiny_config):
+    """``policy_latent=matched``: the θ-hat of each expert episode is the mean of the own buffer's final codes
+    weighed by exp(-summed decoder NLL) of the episode under each code, here recomputed one (code, episode) pair at
+    a time; every step of an episode gets the same θ-hat, and it differs across episodes."""
+    algo = build_algorithm(tiny_config(**{"model.policy_latent": "matched"}), "dil")
+    state = algo.init(jax.random.key(0))
+    state, _ = algo.collect_expert(state, jax.random.key(1))
+    state, _ = algo.collect_explore(state, jax.random.key(2))
+    data, own = state.expert_buffer.data, state.explore_buffer
+    got = np.asarray(algo.training_context(state, data))
+    assert np.all(got == got[:1]) and not np.allclose(got[0, 0], got[0, 1])
+    codes = np.asarray(training_latents(algo.posterior_means(state, own.data), own.data.valid, "final")[0])
+    nll = algo.dynamics_nll(state)
+    feats = action_features(algo.space, data.action)
+    for b in range(data.valid.shape[1]):
+        log_lik = np.array([-float(jnp.sum(nll(jnp.asarray(codes[p])[None, None].repeat(data.horizon, 0),
+                                                 data.obs.imitator[:, b:b + 1], feats[:, b:b + 1],
+                                                 data.valid[:, b:b + 1]) * data.valid[:, b:b + 1]))
+                            for p in range(int(own.size))])
+        w = np.exp(log_lik - log_lik.max())
+        np.testing.assert_allclose(got[0, b], (w / w.sum()) @ codes[: int(own.size)], rtol=1e-4, atol=1e-5)
+    assert algo.policy_context(state, jax.random.key(3)) is not None  # Encoded once per iteration.
 
 
 def test_seed_keys_follow_seed_start(tiny_config):

@@ -13,7 +13,7 @@ from jaxdeconf.envs import parse_bool
 ENCODERS = ("gru", "evidence", "filter")
 WEIGHTINGS = ("sum", "group_mean")  # losses.WEIGHTINGS (not imported: this module stays free of JAX).
 GROUP_LIKELIHOODS = ("declared", "gaussian")
-POLICY_LATENTS = ("current", "final", "random_step")
+POLICY_LATENTS = ("current", "final", "random_step", "matched")
 LATENT_DRAWS = ("mean", "sample")
 FUSIONS = ("late", "early")
 DECODER_LATENTS = ("joint", "additive")
@@ -81,8 +81,10 @@ class ModelConfig:
     group_likelihood: str = _field("declared", GROUP_LIKELIHOODS)
     # The θ-hat dil's policy is cloned on, at every step of an expert episode: "current" (q_phi's posterior mean at
     # that step, the paper's practical choice), "final" (the posterior mean after the whole episode, the θ-hat_H of
-    # the paper's derivation) or "random_step" (the posterior mean at one step of the episode drawn uniformly each
-    # iteration). Online the policy always reads the current posterior mean.
+    # the paper's derivation), "random_step" (the posterior mean at one step of the episode drawn uniformly each
+    # iteration) or "matched" (the posterior mean over the final beliefs of the imitator's own stored episodes, each
+    # weighed by the decoder's likelihood of the expert episode: codes of θ as q_phi writes them on the imitator's
+    # own episodes, where it reads them online). Online the policy always reads the current posterior mean.
     policy_latent: str = _field("current", POLICY_LATENTS)
     # What of q_phi's posterior at that step the policy is cloned on: "mean" (the reference code's) or "sample" (a
     # draw of theta-hat ~ q_phi, as in the paper's Algorithm 1: one draw per expert episode and iteration, so a

@@ -211,10 +211,11 @@ class Deconfounded(Algorithm):
     def policy_context(self, state: TrainState, key: jax.Array) -> jax.Array | None:
         """The encoder is frozen during the policy steps, so when the policy steps would encode at least as many
         episodes as the buffer holds, encoding the whole buffer once gives the same latents for less work.
-        ``random_step`` and ``sample`` always encode the buffer once: their draws (a step, a θ-hat per episode) are
+        ``random_step``, ``matched`` and ``sample`` always encode the buffer once (``matched`` weighs every expert
+        episode against every stored own episode, too costly per batch); the draws (a step, a θ-hat per episode) are
         made here, once per iteration, from ``key``."""
         t, m = self.config.train, self.config.model
-        drawn = m.policy_latent == "random_step" or m.policy_latent_draw == "sample"
+        drawn = m.policy_latent in ("random_step", "matched") or m.policy_latent_draw == "sample"
         if not drawn and t.buffer_episodes > t.batch_size * t.policy_steps:
             return None
         data = state.expert_buffer.data
@@ -233,6 +234,8 @@ class Deconfounded(Algorithm):
         """The θ-hat [T, B, L] the policy is cloned on along expert episodes ``traj``: ``model.policy_latent`` picks
         the step of q_phi's posterior, ``model.policy_latent_draw`` its mean or a draw from it (``sample_latents``)."""
         m = self.config.model
+        if m.policy_latent == "matched":
+            return self.matched_latents(state, traj)
         mean, logvar = self.posterior(state, traj)
         picked = training_latents(mean, traj.valid, m.policy_latent, key)
         if m.policy_latent_draw == "mean":
@@ -241,6 +244,25 @@ class Deconfounded(Algorithm):
             raise ValueError("training_context: policy_latent_draw='sample' draws a θ-hat per episode and needs a key")
         std = jnp.exp(0.5 * training_latents(logvar, traj.valid, m.policy_latent, key))
         return sample_latents(picked, std, jax.random.fold_in(key, 1))
+
+    def matched_latents(self, state: TrainState, traj: Trajectory) -> jax.Array:
+        """θ-hat [T, B, L] for ``model.policy_latent=matched``: per expert episode, the posterior mean over the final
+        codes of the imitator's own stored episodes under the decoder's likelihood of the expert episode
+        (``decoder_posterior_mean``), so the policy is cloned on codes from where q_phi's online beliefs live."""
+        own = state.explore_buffer
+        particles = training_latents(self.posterior_means(state, own.data), own.data.valid, "final")[0]
+        filled = jnp.arange(own.capacity) < own.size
+        z = decoder_posterior_mean(self.dynamics_nll(state), particles, filled, traj.obs.imitator,
+                                   action_features(self.space, traj.action), traj.valid)
+        return jnp.broadcast_to(z, (traj.horizon, *z.shape))
+
+    def dynamics_nll(self, state: TrainState) -> Any:
+        """(z, obs, action_feats, valid) -> the decoder's one-step NLL per step [T, B], as the ELBO scores it."""
+        _, decoder, _ = self.networks
+        fn = functools.partial(losses.prediction_nll, decoder, state.encoder.params["decoder"], steps=1,
+                               likelihood=self.env.obs_likelihood, delta_scale=self.delta_scale,
+                               groups=self.decoder_groups, weighting=self.config.model.decoder_weighting)
+        return lambda z, obs, feats, valid: fn(z, obs, feats, valid)[0]
 
     def policy_outputs(
         self, policy_params: Any, state: TrainState, traj: Trajectory, context: jax.Array | None = None
@@ -266,6 +288,25 @@ def training_latents(mean: jax.Array, valid: jax.Array, which: str, key: jax.Arr
     step = last if which == "final" else jax.random.randint(key, last.shape, 0, last + 1)
     picked = jnp.take_along_axis(mean, step[None, :, None], axis=0)
     return jnp.broadcast_to(picked, mean.shape)
+
+
+def decoder_posterior_mean(
+    nll: Any, particles: jax.Array, filled: jax.Array, obs: jax.Array, feats: jax.Array, valid: jax.Array
+) -> jax.Array:
+    """Posterior means [B, L] of θ-hat for episodes obs [T+1, B, d], action features [T, B, A], valid [T, B] when the
+    prior is uniform over the codes ``particles`` [P, L] (where ``filled`` [P] holds) and the likelihood of an episode
+    given a code is the decoder's, ``exp(-sum_t nll(z, ...))`` over its valid steps. ``nll`` maps (z, obs, feats,
+    valid) with batch axis P to the NLL per step [T, P]. One episode at a time (``lax.map``), so memory is T x P."""
+    P = particles.shape[0]
+
+    def one(episode: tuple[jax.Array, jax.Array, jax.Array]) -> jax.Array:
+        tiled = jax.tree.map(lambda x: jnp.broadcast_to(x[:, None], (x.shape[0], P, *x.shape[1:])), episode)
+        z = jnp.broadcast_to(particles, (tiled[2].shape[0], *particles.shape))
+        log_lik = -jnp.sum(nll(z, *tiled) * tiled[2], axis=0)
+        weights = jax.nn.softmax(jnp.where(filled, log_lik, -jnp.inf))
+        return weights @ particles
+
+    return jax.lax.map(one, jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), (obs, feats, valid)))
 
 
 def sample_latents(mean: jax.Array, std: jax.Array, key: jax.Array) -> jax.Array:
