@@ -198,7 +198,8 @@ def test_decoder_posterior_mean_hand_values():
 def test_matched_latents_equal_a_loop_over_codes_and_episodes(tiny_config):
     """``policy_latent=matched``: the θ-hat of each expert episode is the mean of the own buffer's final codes
     weighed by exp(-summed decoder NLL) of the episode under each code, here recomputed one (code, episode) pair at
-    a time; every step of an episode gets the same θ-hat, and it differs across episodes."""
+    a time; every step of an episode gets the same θ-hat, and it differs across episodes. ``match_codes`` thins the
+    codes to every (capacity // match_codes)-th slot, of which only filled ones count."""
     algo = build_algorithm(tiny_config(**{"model.policy_latent": "matched"}), "dil")
     state = algo.init(jax.random.key(0))
     state, _ = algo.collect_expert(state, jax.random.key(1))
@@ -217,6 +218,9 @@ def test_matched_latents_equal_a_loop_over_codes_and_episodes(tiny_config):
         w = np.exp(log_lik - log_lik.max())
         np.testing.assert_allclose(got[0, b], (w / w.sum()) @ codes[: int(own.size)], rtol=1e-4, atol=1e-5)
     assert algo.policy_context(state, jax.random.key(3)) is not None  # Encoded once per iteration.
+    two = build_algorithm(tiny_config(**{"model.policy_latent": "matched", "model.match_codes": "2"}), "dil")
+    only = np.asarray(two.training_context(state, data))  # Slots 0 and 4 of 8; 4 episodes stored: slot 0 alone.
+    np.testing.assert_allclose(only, np.broadcast_to(codes[0], only.shape), rtol=1e-5, atol=1e-6)
 
 
 def test_seed_keys_follow_seed_start(tiny_config):

@@ -86,6 +86,9 @@ class ModelConfig:
     # weighed by the decoder's likelihood of the expert episode: codes of θ as q_phi writes them on the imitator's
     # own episodes, where it reads them online). Online the policy always reads the current posterior mean.
     policy_latent: str = _field("current", POLICY_LATENTS)
+    # ``matched`` only: how many of the own buffer's slots are codes (every (capacity // match_codes)-th slot, so the
+    # codes span the buffer's ages); 0 for every slot. Its cost is expert episodes x codes decoder passes an iteration.
+    match_codes: int = _field(0, ">=0")
     # What of q_phi's posterior at that step the policy is cloned on: "mean" (the reference code's) or "sample" (a
     # draw of theta-hat ~ q_phi, as in the paper's Algorithm 1: one draw per expert episode and iteration, so a
     # dimension q_phi leaves near the prior is noise the policy learns to ignore rather than a per-episode code it can

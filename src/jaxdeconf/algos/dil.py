@@ -247,11 +247,13 @@ class Deconfounded(Algorithm):
 
     def matched_latents(self, state: TrainState, traj: Trajectory) -> jax.Array:
         """θ-hat [T, B, L] for ``model.policy_latent=matched``: per expert episode, the posterior mean over the final
-        codes of the imitator's own stored episodes under the decoder's likelihood of the expert episode
+        codes of the imitator's own stored episodes (``model.match_codes`` of its slots) under the decoder's likelihood of the expert episode
         (``decoder_posterior_mean``), so the policy is cloned on codes from where q_phi's online beliefs live."""
-        own = state.explore_buffer
-        particles = training_latents(self.posterior_means(state, own.data), own.data.valid, "final")[0]
-        filled = jnp.arange(own.capacity) < own.size
+        own, wanted = state.explore_buffer, self.config.model.match_codes
+        slots = jnp.arange(0, own.capacity, max(own.capacity // wanted, 1) if wanted else 1)
+        data = jax.tree.map(lambda x: x[:, slots], own.data)
+        particles = training_latents(self.posterior_means(state, data), data.valid, "final")[0]
+        filled = slots < own.size
         z = decoder_posterior_mean(self.dynamics_nll(state), particles, filled, traj.obs.imitator,
                                    action_features(self.space, traj.action), traj.valid)
         return jnp.broadcast_to(z, (traj.horizon, *z.shape))
