@@ -247,8 +247,9 @@ class Deconfounded(Algorithm):
 
     def matched_latents(self, state: TrainState, traj: Trajectory) -> jax.Array:
         """θ-hat [T, B, L] for ``model.policy_latent=matched``: per expert episode, the posterior mean over the final
-        codes of the imitator's own stored episodes (``model.match_codes`` of its slots) under the decoder's likelihood of the expert episode
-        (``decoder_posterior_mean``), so the policy is cloned on codes from where q_phi's online beliefs live."""
+        codes of the imitator's own stored episodes (``model.match_codes`` of its slots) under the decoder's likelihood
+        of the expert episode (``decoder_posterior_mean``), so the policy is cloned on codes from where q_phi's online
+        beliefs live."""
         own, wanted = state.explore_buffer, self.config.model.match_codes
         slots = jnp.arange(0, own.capacity, max(own.capacity // wanted, 1) if wanted else 1)
         data = jax.tree.map(lambda x: x[:, slots], own.data)
