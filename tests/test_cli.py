@@ -42,6 +42,8 @@ BAD_INPUTS = [
     (["--set", "model.bc_memory=lstm"], "model.bc_memory='lstm' is not allowed; allowed: gru, none"),
     (["--set", "model.policy_latent_draw=mode"],
      "model.policy_latent_draw='mode' is not allowed; allowed: mean, sample"),
+    (["--set", "model.policy_latent=matched", "--set", "model.policy_latent_draw=sample"],
+     "model.policy_latent_draw='sample' is not allowed with model.policy_latent='matched'"),
     (["--set", "model.policy_fusion=middle"], "model.policy_fusion='middle' is not allowed; allowed: late, early"),
     (["--set", "gail.minibatches=5"], "gail.minibatches=5 must divide the generator's 128 episodes"),
     (["--set", "gail.nope=1"], "unknown field 'gail.nope'"),

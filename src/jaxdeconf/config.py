@@ -86,8 +86,9 @@ class ModelConfig:
     # weighed by the decoder's likelihood of the expert episode: codes of θ as q_phi writes them on the imitator's
     # own episodes, where it reads them online). Online the policy always reads the current posterior mean.
     policy_latent: str = _field("current", POLICY_LATENTS)
-    # ``matched`` only: how many of the own buffer's slots are codes (every (capacity // match_codes)-th slot, so the
-    # codes span the buffer's ages); 0 for every slot. Its cost is expert episodes x codes decoder passes an iteration.
+    # ``matched`` only: how many of the own buffer's slots are codes (evenly spaced, so the codes span the buffer's
+    # ages; at most the buffer's capacity); 0 for every slot. Its cost per iteration is expert-buffer capacity x codes
+    # x horizon decoder steps.
     match_codes: int = _field(0, ">=0")
     # What of q_phi's posterior at that step the policy is cloned on: "mean" (the reference code's) or "sample" (a
     # draw of theta-hat ~ q_phi, as in the paper's Algorithm 1: one draw per expert episode and iteration, so a
@@ -513,6 +514,10 @@ def validate(config: Config) -> None:
             f"train.batch_size={config.train.batch_size} exceeds train.buffer_episodes="
             f"{config.train.buffer_episodes}: a batch must fit in the buffer"
         )
+    m = config.model
+    if m.policy_latent == "matched" and m.policy_latent_draw == "sample":
+        raise ConfigError("model.policy_latent_draw='sample' is not allowed with model.policy_latent='matched': "
+                          "matched clones on a posterior mean over stored codes; use policy_latent_draw=mean")
     if config.seed_start + config.seeds - 1 > INT32_MAX:
         raise ConfigError(f"seed_start={config.seed_start} is too large: seeds seed_start .. seed_start + seeds - 1 "
                           f"must be at most {INT32_MAX}")

@@ -9,6 +9,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 
 from jaxdeconf import losses
@@ -251,7 +252,8 @@ class Deconfounded(Algorithm):
         of the expert episode (``decoder_posterior_mean``), so the policy is cloned on codes from where q_phi's online
         beliefs live."""
         own, wanted = state.explore_buffer, self.config.model.match_codes
-        slots = jnp.arange(0, own.capacity, max(own.capacity // wanted, 1) if wanted else 1)
+        count = min(wanted, own.capacity) if wanted else own.capacity
+        slots = jnp.asarray((np.arange(count) * own.capacity) // count)  # Evenly spaced over the buffer.
         data = jax.tree.map(lambda x: x[:, slots], own.data)
         particles = training_latents(self.posterior_means(state, data), data.valid, "final")[0]
         filled = slots < own.size
@@ -299,7 +301,8 @@ def decoder_posterior_mean(
     """Posterior means [B, L] of θ-hat for episodes obs [T+1, B, d], action features [T, B, A], valid [T, B] when the
     prior is uniform over the codes ``particles`` [P, L] (where ``filled`` [P] holds) and the likelihood of an episode
     given a code is the decoder's, ``exp(-sum_t nll(z, ...))`` over its valid steps. ``nll`` maps (z, obs, feats,
-    valid) with batch axis P to the NLL per step [T, P]. One episode at a time (``lax.map``), so memory is T x P."""
+    valid) with batch axis P to the NLL per step [T, P]. One episode at a time (``lax.map``), so memory is T x P.
+    At least one code must be filled (else NaN). Summed over a whole episode, the weights are close to one-hot."""
     P = particles.shape[0]
 
     def one(episode: tuple[jax.Array, jax.Array, jax.Array]) -> jax.Array:
