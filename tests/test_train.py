@@ -198,8 +198,8 @@ def test_decoder_posterior_mean_hand_values():
 def test_matched_latents_equal_a_loop_over_codes_and_episodes(tiny_config):
     """``policy_latent=matched``: the θ-hat of each expert episode is the mean of the own buffer's final codes
     weighed by exp(-summed decoder NLL) of the episode under each code, here recomputed one (code, episode) pair at
-    a time; every step of an episode gets the same θ-hat, and it differs across episodes. ``match_codes`` thins the
-    codes to every (capacity // match_codes)-th slot, of which only filled ones count."""
+    a time; every step of an episode gets the same θ-hat, and it differs across episodes. ``match_codes`` keeps that
+    many evenly spaced slots as codes, of which only filled ones count."""
     algo = build_algorithm(tiny_config(**{"model.policy_latent": "matched"}), "dil")
     state = algo.init(jax.random.key(0))
     state, _ = algo.collect_expert(state, jax.random.key(1))

@@ -9,7 +9,6 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optax
 
 from jaxdeconf import losses
@@ -160,12 +159,16 @@ class Deconfounded(Algorithm):
             decoder=decoder,
             beta=t.beta,
             steps=t.prediction_steps,
-            likelihood=self.env.obs_likelihood,
-            delta_scale=self.delta_scale,
             encoder_delta_scale=self.encoder_scale,
-            groups=self.decoder_groups,
-            weighting=self.config.model.decoder_weighting,
+            **self.decoder_scoring,
         )
+
+    @property
+    def decoder_scoring(self) -> dict[str, Any]:
+        """How the decoder's predictions are scored (``losses.prediction_nll``'s keywords), shared by the ELBO and
+        ``dynamics_nll``."""
+        return {"likelihood": self.env.obs_likelihood, "delta_scale": self.delta_scale, "groups": self.decoder_groups,
+                "weighting": self.config.model.decoder_weighting}
 
     def update_encoder(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
         """``encoder_steps`` ELBO steps on batches of whole exploration episodes."""
@@ -253,7 +256,7 @@ class Deconfounded(Algorithm):
         beliefs live."""
         own, wanted = state.explore_buffer, self.config.model.match_codes
         count = min(wanted, own.capacity) if wanted else own.capacity
-        slots = jnp.asarray((np.arange(count) * own.capacity) // count)  # Evenly spaced over the buffer.
+        slots = jnp.arange(count) * own.capacity // count  # Evenly spaced over the buffer.
         data = jax.tree.map(lambda x: x[:, slots], own.data)
         particles = training_latents(self.posterior_means(state, data), data.valid, "final")[0]
         filled = slots < own.size
@@ -265,8 +268,7 @@ class Deconfounded(Algorithm):
         """(z, obs, action_feats, valid) -> the decoder's one-step NLL per step [T, B], as the ELBO scores it."""
         _, decoder, _ = self.networks
         fn = functools.partial(losses.prediction_nll, decoder, state.encoder.params["decoder"], steps=1,
-                               likelihood=self.env.obs_likelihood, delta_scale=self.delta_scale,
-                               groups=self.decoder_groups, weighting=self.config.model.decoder_weighting)
+                               **self.decoder_scoring)
         return lambda z, obs, feats, valid: fn(z, obs, feats, valid)[0]
 
     def policy_outputs(
