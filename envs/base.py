@@ -81,7 +81,8 @@ class Environment:
     extras_names: ClassVar[tuple[str, ...]] = ()
     #: A per-step extra to show per θ bin in diagnostics.png, and its label (default: the episode's return).
     diagnostic_extra: ClassVar[tuple[str, str] | None] = None
-    #: Config presets for an env loaded as ``module:Class``: preset name -> dotted overrides (``"train.iterations"``).
+    #: Config presets: preset name (``cpu``, ``paper``) -> dotted overrides (``"train.iterations"``) of the config's
+    #: defaults. An env without presets cannot be trained until it declares at least one.
     presets: ClassVar[dict[str, dict[str, Any]]] = {}
 
     def default_params(self) -> Any:

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from functools import cached_property
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -164,6 +164,56 @@ class BraxConfounded(Environment):
 # --------------------------------------------------------------------------------------------------- half_cheetah
 
 
+def locomotion_cpu(horizon: int, prediction_steps: int, anneal: int) -> dict[str, Any]:
+    """The reduced Brax preset: what a 2-core CPU trains in under an hour."""
+    return {
+        "env.horizon": horizon,
+        "model.width": 64,
+        "model.action_embed": 16,
+        "model.gru": 64,
+        "model.bc_gru": 64,
+        "model.latent": 8,
+        "train.iterations": 40,
+        "train.warmup": 5,
+        "train.chunk": 5,
+        "train.episodes_per_iter": 8,
+        "train.batch_size": 8,
+        "train.buffer_episodes": 128,
+        # The paper's 100 + 100 gradient steps per iteration: fewer leave dil's latent policy unable to read θ-hat.
+        "train.policy_steps": 100,
+        "train.encoder_steps": 100,
+        "train.policy_lr": 1e-3,
+        "train.encoder_lr": 1e-3,
+        "train.beta": 1.0,
+        "train.prediction_steps": prediction_steps,
+        "train.eval_episodes": 64,
+        "dagger.anneal_iterations": anneal,
+    }
+
+
+def locomotion_paper(latent: int, prediction_steps: int, buffer_episodes: int, anneal: int) -> dict[str, Any]:
+    """The paper's configuration for the Brax envs (meant for a GPU)."""
+    return {
+        "model.width": 128,
+        "model.action_embed": 32,
+        "model.gru": 500,
+        "model.bc_gru": 500,
+        "model.latent": latent,
+        "train.iterations": 300,
+        "train.warmup": 20,
+        "train.chunk": 10,
+        "train.episodes_per_iter": 16,
+        "train.batch_size": 16,
+        "train.buffer_episodes": buffer_episodes,
+        "train.policy_steps": 100,
+        "train.encoder_steps": 100,
+        "train.beta": 1.0,
+        "train.prediction_steps": prediction_steps,
+        "train.eval_episodes": 64,
+        "dagger.anneal_iterations": anneal,
+    }
+
+
 @struct.dataclass
 class HalfCheetahParams:
     """Parameters; ``backend``, ``horizon`` and ``expert_sees_indicator`` are static."""
@@ -187,6 +237,19 @@ class HalfCheetah(BraxConfounded):
 
     name = "half_cheetah"
     brax_name = "halfcheetah"
+    presets: ClassVar[dict[str, dict[str, Any]]] = {
+        # Reduced for a 2-core CPU: 200-step episodes (the paper's are 1000), small nets, 40 iterations of 8 episodes.
+        # The cue is scored as a Gaussian like the body. q_phi is the belief-conditioned factor encoder ("filter"),
+        # and pi_eta is cloned on matched codes (q_phi's final codes of the imitator's own episodes, weighed by the
+        # decoder's likelihood of the expert episode), the codes the policy reads online; 64 of the 128 stored codes
+        # bound the matching's cost (docs/ablations.md).
+        "cpu": {**locomotion_cpu(horizon=200, prediction_steps=10, anneal=8),  # 63 of 300 iterations, scaled to 40.
+                "model.group_likelihood": "gaussian", "model.encoder": "filter", "model.policy_latent": "matched",
+                "model.match_codes": 64},
+        # The paper's configuration (for a GPU): GRU 500, latent 64, K = 10, 2000 episodes (2e6 transitions).
+        "paper": {**locomotion_paper(latent=64, prediction_steps=10, buffer_episodes=2000, anneal=63),
+                  "model.group_likelihood": "gaussian"},
+    }
     # The XML asks for Newton with 4 iterations of up to 50 line-search steps. 8 steps give the same trajectories
     # (identical max |qd| over 32 random-action episodes of 1000 steps) 3.8x faster on this CPU; Brax's ant on MJX
     # uses 1 iteration of 4, which makes the cheetah blow up (|qd| ~ 1e17, then NaN) within 1000 steps.
@@ -278,6 +341,18 @@ class AntGoal(BraxConfounded):
 
     name = "ant_goal"
     brax_name = "ant"
+    presets: ClassVar[dict[str, dict[str, Any]]] = {
+        # Reduced for a 2-core CPU: small nets, K = 10 (the paper's is 50), 40 iterations of 8 episodes. The decoder
+        # weighs the body and the 3-dimensional cue equally (the reference code's per-key weighting); pi_eta reads
+        # θ-hat beside the observation at its input, where the goal minus the torso's position is one linear layer
+        # away; q_phi is the product-of-factors encoder, whose belief cannot fade once the ant stands at its goal
+        # (docs/ablations.md). DAgger's beta anneals inside the warm-up, as in the reference code.
+        "cpu": {**locomotion_cpu(horizon=200, prediction_steps=10, anneal=5), "model.decoder_weighting": "group_mean",
+                "model.policy_fusion": "early", "model.encoder": "evidence"},
+        # The paper's configuration (for a GPU): latent 8, K = 50; replay capped at 2000 episodes (4e5 transitions,
+        # against the reference code's 2e6) so that a seed's buffers fit next to others on one GPU.
+        "paper": locomotion_paper(latent=8, prediction_steps=50, buffer_episodes=2000, anneal=20),
+    }
     brax_kwargs = {"terminate_when_unhealthy": False, "exclude_current_positions_from_observation": False}  # noqa: RUF012
     extras_names = ("distance", "unhealthy")
     diagnostic_extra = ("distance", "mean distance to the goal per step")

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 from functools import cached_property
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -346,6 +346,51 @@ class LunarLander(Environment):
     name = "lunar_lander"
     obs_likelihood = "gaussian"
     extras_names = ("landed", "crashed", "swapped_used")
+    presets: ClassVar[dict[str, dict[str, Any]]] = {
+        # Reduced for a 2-core CPU: small nets, a 10-step prediction horizon, 60 iterations of 16 episodes.
+        "cpu": {
+            "model.width": 64,
+            "model.action_embed": 16,
+            "model.gru": 64,
+            "model.bc_gru": 64,
+            "model.latent": 8,
+            "train.iterations": 60,
+            "train.warmup": 5,
+            "train.chunk": 5,
+            "train.episodes_per_iter": 16,
+            "train.batch_size": 16,
+            "train.buffer_episodes": 256,
+            "train.policy_steps": 16,
+            "train.encoder_steps": 16,
+            "train.policy_lr": 1e-3,
+            "train.encoder_lr": 1e-3,
+            "train.beta": 1.0,
+            "train.prediction_steps": 10,
+            "train.eval_episodes": 32,
+            # The reference code anneals over 125 of 300 iterations; the same share of this preset's 60.
+            "dagger.anneal_iterations": 25,
+        },
+        # The paper's configuration (for a GPU): GRU 500, latent 64, K = 50, replay of 2e6 transitions.
+        "paper": {
+            "model.width": 128,
+            "model.action_embed": 32,
+            "model.gru": 500,
+            "model.bc_gru": 500,
+            "model.latent": 64,
+            "train.iterations": 300,
+            "train.warmup": 20,
+            "train.chunk": 10,
+            "train.episodes_per_iter": 16,
+            "train.batch_size": 16,
+            "train.buffer_episodes": 4000,
+            "train.policy_steps": 100,
+            "train.encoder_steps": 100,
+            "train.beta": 1.0,
+            "train.prediction_steps": 50,
+            "train.eval_episodes": 64,
+            "dagger.anneal_iterations": 125,
+        },
+    }
 
     def default_params(self) -> LunarLanderParams:
         """The paper's version: left/right swap, noise 0.15, 500 steps."""

@@ -11,8 +11,8 @@ import jax
 import numpy as np
 import pytest
 
-from jaxdeconf.config import build
-from jaxdeconf.run import available_cores, pin_to_core
+from jaxdeconf.platform import available_cores, pin_to_core
+from jaxdeconf.resolve import build
 
 
 def pytest_configure(config):

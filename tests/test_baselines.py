@@ -15,7 +15,7 @@ from jaxdeconf.envs.base import ActionSpace
 from jaxdeconf.actors import ExpertActor
 from jaxdeconf.algos.dagger import MixtureActor, mixture_beta
 from jaxdeconf.algos.gail import discriminator_loss, gail_reward, next_step_values
-from jaxdeconf.data import replay, rollout
+from jaxdeconf.data import rollout
 from jaxdeconf.losses import soft_nll
 from jaxdeconf.models import log_prob
 from jaxdeconf.ppo import clipped_surrogate, gae, normalize_advantages, squared_value_error
@@ -180,21 +180,3 @@ def test_seed_of_sweep_equals_single_run(tmp_path, tiny_config, algo):
     assert_rows_close(a, b)
 
 
-def test_markov_bc_reads_only_the_current_observation(tiny_config):
-    """``model.bc_memory=none``: acting (the actor's replay) equals training (``policy_outputs``), and on the bandit,
-    whose view is the last outcome alone, every step with the same observation gets the same head output; the GRU's
-    outputs differ along the history, so the check can fail."""
-    outputs = {}
-    for memory in ("none", "gru"):
-        algo = build_algorithm(tiny_config(**{"model.bc_memory": memory}), "bc")
-        state = jax.jit(algo.init)(jax.random.key(0))
-        state, _ = jax.jit(algo.collect_expert)(state, jax.random.key(1))
-        traj = state.expert_buffer.data
-        out = np.asarray(jax.jit(algo.policy_outputs)(state.policy.params, state, traj))
-        acted = np.asarray(replay(algo.actor(), algo.actor_params(state), traj, algo.space))
-        np.testing.assert_allclose(acted, out, rtol=1e-5, atol=1e-6)
-        obs = np.asarray(traj.obs.imitator[: traj.horizon]).reshape(-1, traj.obs.imitator.shape[-1])
-        outputs[memory] = (out.reshape(-1, out.shape[-1]), obs)
-    for memory, (out, obs) in outputs.items():
-        spread = max(np.ptp(out[(obs == o).all(-1)], axis=0).max() for o in np.unique(obs, axis=0))
-        assert (spread < 1e-6) == (memory == "none"), (memory, spread)

@@ -9,7 +9,8 @@ from conftest import CARTPOLE
 from jaxdeconf.envs import EnvCheckError, Observation, ObsGroup, check_env, make, register, resolve
 from jaxdeconf.envs.bandit import Bandit, BanditParams, BanditState
 
-from jaxdeconf.config import ConfigError, build
+from jaxdeconf.errors import ConfigError
+from jaxdeconf.resolve import build
 
 pytestmark = pytest.mark.timeout(900)
 

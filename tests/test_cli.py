@@ -37,13 +37,9 @@ BAD_INPUTS = [
     (["--set", "gail.disc_steps=0"], "gail.disc_steps=0 is not allowed: need a positive integer"),
     (["--set", "gail.lr=nan"], "gail.lr=nan is not allowed: need a finite number"),
     (["--set", "gail.gamma=1.5"], "gail.gamma=1.5 is not allowed: need a number in [0, 1]"),
-    (["--set", "gail.disc_input=image"], "gail.disc_input='image' is not allowed; allowed: next, transition"),
     (["--set", "gail.reward=sparse"], "gail.reward='sparse' is not allowed; allowed: discriminator, env"),
-    (["--set", "model.bc_memory=lstm"], "model.bc_memory='lstm' is not allowed; allowed: gru, none"),
-    (["--set", "model.policy_latent_draw=mode"],
-     "model.policy_latent_draw='mode' is not allowed; allowed: mean, sample"),
-    (["--set", "model.policy_latent=matched", "--set", "model.policy_latent_draw=sample"],
-     "model.policy_latent_draw='sample' is not allowed with model.policy_latent='matched'"),
+    (["--set", "model.policy_latent=final"], "model.policy_latent='final' is not allowed; allowed: current, matched"),
+    (["--set", "model.latent_norm=expert"], "unknown field 'model.latent_norm'; allowed model.* fields: action_embed"),
     (["--set", "model.policy_fusion=middle"], "model.policy_fusion='middle' is not allowed; allowed: late, early"),
     (["--set", "gail.minibatches=5"], "gail.minibatches=5 must divide the generator's 128 episodes"),
     (["--set", "gail.nope=1"], "unknown field 'gail.nope'"),
@@ -115,8 +111,8 @@ def test_bad_input_one_line_exit_2(tmp_path, capfd):
 
 def _results_folder(folder: pathlib.Path, config_text: str | None = None) -> list[str]:
     """A results folder as a first start leaves it (config.json only); returns the CLI arguments that made it."""
-    from jaxdeconf.config import build
-    from jaxdeconf.run import prepare_folder
+    from jaxdeconf.folders import prepare_folder
+    from jaxdeconf.resolve import build
 
     argv = ["--algo", "bc", "--seeds", "2", "--out", str(folder), "--quiet", *TINY_ARGS]
     prepare_folder(folder, build("bandit", "cpu", ("bc",), 2, TINY), overwrite=False).release()
@@ -168,8 +164,8 @@ def test_bad_paths_and_damaged_files(tmp_path, capfd):
 
     # The same config with an env parameter spelled differently is the same config.
     _results_folder(tmp_path / "typed")
-    from jaxdeconf.config import build
-    from jaxdeconf.run import _check_same_config, typed_env_params
+    from jaxdeconf.folders import _check_same_config, typed_env_params
+    from jaxdeconf.resolve import build
 
     _check_same_config(tmp_path / "typed" / "config.json",
                        typed_env_params(build("bandit", "cpu", ("bc",), 2, {**TINY, "env.horizon": "010"})))
@@ -278,7 +274,7 @@ def test_run_then_protect_results(tmp_path, capfd):
 
 @pytest.mark.parametrize("value", ["1.0", "0.5"])
 def test_probabilities_in_range_are_accepted(tmp_path, value):
-    from jaxdeconf.config import build
+    from jaxdeconf.resolve import build
 
     config = build("bandit", "cpu", ("bc",), 1, {"env.p": value, "env.q": value})
     assert config.env_params == {"p": value, "q": value}

@@ -12,8 +12,10 @@ from gymnasium.vector import AutoresetMode
 
 from jaxdeconf import config as cfg
 from jaxdeconf.data import rollout
+from jaxdeconf.errors import ConfigError
 from jaxdeconf.gym import GymEnv, GymVectorEnv, make_env, make_vector_env
 from jaxdeconf.policy import load_policy
+from jaxdeconf.resolve import build
 from jaxdeconf.train import train_algorithm
 
 pytestmark = pytest.mark.timeout(1800)
@@ -50,7 +52,7 @@ def test_vector_env_reset_seeding_and_next_step_autoreset():
 def trained(tmp_path_factory):
     """dil trained for 4 iterations on a 10-step bandit, 2 seeds, in a results folder."""
     folder = tmp_path_factory.mktemp("results")
-    config = cfg.build("bandit", "cpu", ("dil",), 2, TINY)
+    config = build("bandit", "cpu", ("dil",), 2, TINY)
     (folder / "config.json").write_text(cfg.dumps(config) + "\n")
     for algo in config.algos:
         train_algorithm(config, algo, folder / algo, progress=False)
@@ -87,9 +89,9 @@ def test_policy_through_the_wrappers_matches_the_compiled_rollout(trained):
 
 
 def test_load_policy_errors_are_one_line(trained):
-    with pytest.raises(cfg.ConfigError, match="seed 7 was not trained"):
+    with pytest.raises(ConfigError, match="seed 7 was not trained"):
         load_policy(trained, "dil", seed=7)
-    with pytest.raises(cfg.ConfigError, match="holds no 'bc' run"):
+    with pytest.raises(ConfigError, match="holds no 'bc' run"):
         load_policy(trained, "bc", seed=0)
 
 

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 from jaxdeconf.envs import make
 
-from jaxdeconf.config import build
 from jaxdeconf.references import reference_curves
+from jaxdeconf.resolve import build
 from jaxdeconf.results import load_metrics
 from jaxdeconf.train import train_algorithm
 

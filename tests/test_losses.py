@@ -180,49 +180,9 @@ def test_deconfounded_actor_matches_teacher_forced_posterior(deltas, kind):
         np.testing.assert_allclose(out, expected[t], rtol=1e-5, atol=1e-5)
 
 
-@pytest.mark.parametrize("kind", ["gru", "evidence", "filter"])
-def test_encoder_without_actions_ignores_them_and_keeps_its_parameters(kind):
-    """``model.encoder_actions=false``: the posterior along a sequence is the same whatever the previous actions, and
-    equals the action-reading encoder's (same parameters: the tree is unchanged) fed zeros in their place; the
-    action-reading encoder's posterior does depend on them."""
-    obs = jax.random.normal(jax.random.key(0), (7, 3, 4))
-    acts = [jax.nn.one_hot(jax.random.randint(jax.random.key(k), (7, 3), 0, 5), 5) for k in (1, 2)]
-    blind, reading = make_encoder(kind, 8, 4, 6, 2, read_actions=False), make_encoder(kind, 8, 4, 6, 2)
-    params = reading.init(jax.random.key(3), obs[0], acts[0][0])
-    assert jax.tree.structure(blind.init(jax.random.key(3), obs[0], acts[0][0])) == jax.tree.structure(params)
-    mean_a, logvar_a = losses.encoder_scan(blind, params, obs, acts[0])
-    mean_b, logvar_b = losses.encoder_scan(blind, params, obs, acts[1])
-    np.testing.assert_array_equal(mean_a, mean_b)
-    np.testing.assert_array_equal(logvar_a, logvar_b)
-    mean_zero, _ = losses.encoder_scan(reading, params, obs, jnp.zeros_like(acts[0]))
-    np.testing.assert_allclose(mean_a, mean_zero, rtol=1e-6, atol=1e-7)
-    mean_read, _ = losses.encoder_scan(reading, params, obs, acts[0])
-    assert float(jnp.max(jnp.abs(mean_read - mean_a))) > 1e-4
-
-
-def test_additive_decoder_shifts_every_state_alike_and_joint_keeps_its_parameters():
-    """``model.decoder_latent=additive``: out(z, s, a) - out(z', s, a) is the same for every (s, a), so what θ-hat
-    implies (e.g. the speed at which a cue's logit changes sign) cannot depend on the state; the joint decoder's
-    differences do depend on it, and its parameter tree is the one the joint decoder always had."""
-    z = jnp.broadcast_to(jax.random.normal(jax.random.key(0), (2, 1, 3)), (2, 5, 3))  # Two θ-hats, five states each.
-    obs, act = jax.random.normal(jax.random.key(1), (5, 4)), jax.random.normal(jax.random.key(2), (5, 2))
-    additive, joint = Decoder(8, 4, 4, "additive"), Decoder(8, 4, 4)
-    for decoder in (additive, joint):
-        params = decoder.init(jax.random.key(3), z[0], obs, act)
-        shift = decoder.apply(params, z[1], obs, act) - decoder.apply(params, z[0], obs, act)  # [5 states, 4]
-        spread = float(jnp.max(jnp.abs(shift - shift[:1])))
-        if decoder is additive:
-            assert spread < 1e-5
-            assert float(jnp.max(jnp.abs(shift))) > 1e-2  # z does shift the prediction.
-        else:
-            assert spread > 1e-2
-            assert sorted(params["params"]) == ["Dense_0", "Dense_1", "Interaction_0", "MLP_0", "MLP_1"]
-            assert params["params"]["MLP_0"]["Dense_0"]["kernel"].shape == (4, 8)  # MLP_0 reads the observation.
-
-
 def test_early_fusion_policy_is_the_markov_oracle_network_on_obs_and_theta_hat():
     """``policy_fusion=early`` reads θ-hat beside the observation at the input: with the same parameters it is the
-    Markov oracle's network (``bc_memory=none``: an empty latent) applied to [obs, θ-hat]; "late" is not."""
+    late network with an empty latent applied to [obs, θ-hat]; "late" is not."""
     obs, z = jax.random.normal(jax.random.key(0), (6, 3)), jax.random.normal(jax.random.key(1), (6, 2))
     early, markov = LatentPolicy(8, 4, "early"), LatentPolicy(8, 4)
     params = early.init(jax.random.key(2), obs, z)
@@ -342,45 +302,3 @@ def test_grouped_elbo_scan_matches_plain_loop(weighting):
     assert float(loss) == pytest.approx(float(total / count), rel=1e-5)
 
 
-def test_training_latents_current_and_final():
-    """"current" keeps each step's posterior mean; "final" gives every step of an episode the mean at its last valid
-    step (episode 0 runs 3 steps, episode 1 all 4)."""
-    from jaxdeconf.algos.dil import training_latents
-
-    mean = jnp.arange(4 * 2 * 1, dtype=jnp.float32).reshape(4, 2, 1)  # mean[t, b] = 2t + b
-    valid = jnp.array([[1, 1], [1, 1], [1, 1], [0, 1]], bool)
-    np.testing.assert_array_equal(training_latents(mean, valid, "current"), mean)
-    final = training_latents(mean, valid, "final")
-    np.testing.assert_array_equal(final[:, 0, 0], [4.0] * 4)
-    np.testing.assert_array_equal(final[:, 1, 0], [7.0] * 4)
-
-
-def test_training_latents_random_step_draws_one_valid_step_per_episode():
-    """"random_step": every step of an episode gets the mean at one of its valid steps (episode 0 runs 3 steps, so
-    never its 4th), drawn uniformly per episode: over many keys each valid step is drawn about equally often."""
-    from jaxdeconf.algos.dil import training_latents
-
-    mean = jnp.arange(4 * 2 * 1, dtype=jnp.float32).reshape(4, 2, 1)  # mean[t, b] = 2t + b
-    valid = jnp.array([[1, 1], [1, 1], [1, 1], [0, 1]], bool)
-    keys = jax.random.split(jax.random.key(0), 4000)
-    draws = jax.vmap(lambda k: training_latents(mean, valid, "random_step", k))(keys)
-    assert bool(jnp.all(draws == draws[:, :1]))  # Constant over the episode.
-    steps = np.asarray((draws[:, 0, :, 0] - jnp.arange(2)) / 2).astype(int)  # The drawn step per episode.
-    np.testing.assert_allclose(np.bincount(steps[:, 0], minlength=4) / 4000, [1 / 3, 1 / 3, 1 / 3, 0], atol=0.03)
-    np.testing.assert_allclose(np.bincount(steps[:, 1], minlength=4) / 4000, [0.25] * 4, atol=0.03)
-
-
-def test_sample_latents_draw_one_theta_hat_per_episode_from_the_posterior():
-    """``policy_latent_draw=sample``: every step of an episode shares one draw mean + std · ε, ε ~ N(0, I); over
-    many keys the draws have the posterior's mean and standard deviation per episode and dimension."""
-    from jaxdeconf.algos.dil import sample_latents
-
-    mean = jnp.broadcast_to(jnp.array([[[0.5, -2.0], [1.0, 0.0]]]), (3, 2, 2))  # [T, B, L], constant over T.
-    std = jnp.broadcast_to(jnp.array([[[0.1, 1.0], [2.0, 0.5]]]), (3, 2, 2))
-    draws = jax.vmap(lambda k: sample_latents(mean, std, k))(jax.random.split(jax.random.key(0), 8000))
-    assert bool(jnp.all(draws == draws[:, :1]))  # One draw per episode.
-    np.testing.assert_allclose(draws[:, 0].mean(0), mean[0], atol=0.06)
-    np.testing.assert_allclose(draws[:, 0].std(0), std[0], rtol=0.04)
-    # Episodes and dimensions draw independently.
-    flat = np.asarray((draws[:, 0] - mean[0]) / std[0]).reshape(8000, 4)
-    np.testing.assert_allclose(np.corrcoef(flat.T), np.eye(4), atol=0.05)

@@ -274,7 +274,7 @@ def test_shipped_expert_lands_and_knows_theta():
 def test_algorithms_train_on_lunar_lander(tmp_path, algo):
     from conftest import TINY
 
-    from jaxdeconf.config import build
+    from jaxdeconf.resolve import build
     from jaxdeconf.train import train_algorithm
 
     overrides = {**TINY, "env.horizon": "20", "train.prediction_steps": "3"}

@@ -14,8 +14,9 @@ from jaxdeconf.envs.bandit import Bandit
 
 from jaxdeconf import losses
 from jaxdeconf.algos import make_algorithm
-from jaxdeconf.config import build, from_dict
+from jaxdeconf.errors import ConfigError
 from jaxdeconf.models import Decoder, Encoder, LatentPolicy, log_prob
+from jaxdeconf.resolve import build, from_dict
 from jaxdeconf.results import load_metrics
 from jaxdeconf.train import train_algorithm
 
@@ -194,15 +195,15 @@ def test_synthetic_latents_from_the_prior_or_from_q_off():
                                mean + np.exp(0.5 * logvar) * draw, rtol=1e-5, atol=1e-6)
 
 
-def test_folders_saved_before_the_synthetic_latent_setting_read_back_as_prior():
-    """A results folder written before ``offline.synthetic_latent`` existed ran with the prior: reading its config
-    back gives "prior", so resuming it under the new default is refused as a different config, not silently mixed."""
+def test_saved_configs_read_back_and_a_removed_setting_is_named():
+    """A saved config reads back equal, the algorithm-owned ``offline`` section included; a folder whose config holds
+    a setting this version does not have is refused with one line naming it."""
     config = _offline_config()
-    assert config.offline.synthetic_latent == "posterior"
     saved = config.to_dict()
     assert from_dict(saved) == config
-    del saved["offline"]["synthetic_latent"]
-    assert from_dict(saved).offline.synthetic_latent == "prior"
+    saved["offline"]["dynamics_noise"] = 0.0
+    with pytest.raises(ConfigError, match=r"^offline.dynamics_noise is not a setting of this version"):
+        from_dict(saved)
 
 
 #: The learning check's reduced budget: 30-step episodes, 30 iterations, small step counts.

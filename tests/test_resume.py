@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from conftest import TINY
 
-from jaxdeconf import run
+from jaxdeconf import folders
 from jaxdeconf.checkpoint import Checkpoints
-from jaxdeconf.config import build
+from jaxdeconf.resolve import build
 from jaxdeconf.train import resume_timing, timing_totals, train_algorithm
 
 
@@ -24,9 +24,10 @@ def _rows(folder):
     return [json.loads(line) for line in (folder / "metrics.jsonl").read_text().splitlines()]
 
 
-@pytest.mark.parametrize("overrides", [{}, {"model.latent_norm": "expert"}], ids=["plain", "latent_norm"])
+@pytest.mark.parametrize("overrides", [{}, {"model.policy_latent": "matched"}], ids=["plain", "matched"])
 def test_interrupted_run_resumes_exactly(tmp_path, tiny_config, monkeypatch, overrides):
-    """Resumed from its checkpoint, a run is the uninterrupted one (with θ-hat's standardisation in the state too)."""
+    """Resumed from its checkpoint, a run is the uninterrupted one (also where the policy's latents are matched
+    against the own buffer, which the checkpoint must restore whole)."""
     config = tiny_config(**overrides)
     train_algorithm(config, "dil", tmp_path / "whole", progress=False)
 
@@ -114,7 +115,7 @@ def uninterrupted(tmp_path_factory):
 def _prepare(folder: pathlib.Path) -> None:
     """What the CLI's parent does before it starts a worker: the folder and its config.json."""
     config = build("bandit", "cpu", ("bc",), SEEDS, TINY)
-    run.prepare_folder(folder, config, overwrite=False).release()
+    folders.prepare_folder(folder, config, overwrite=False).release()
 
 
 MOMENTS = [
@@ -280,7 +281,7 @@ def test_signal_stops_workers_with_one_line(tmp_path, signum):
 def test_resume_metrics_drops_exactly_the_rows_past_the_checkpoint(tmp_path, tiny_config):
     """Rows past the checkpoint, a partial last line and garbage go (by an atomic rewrite); missing rows are an
     error naming the file; rows are strict JSON (NaN written as null)."""
-    from jaxdeconf.config import ConfigError
+    from jaxdeconf.errors import ConfigError
     from jaxdeconf.files import append_lines, dumps_row, read_rows
     from jaxdeconf.train import resume_metrics
 

@@ -11,10 +11,9 @@ import numpy as np
 import pytest
 from conftest import assert_rows_close
 
-from jaxdeconf.actors import FixedLatentActor
-from jaxdeconf.algos import NAMES as ALGOS
-from jaxdeconf.algos.dil import Deconfounded, decoder_posterior_mean, latent_moments, training_latents
-from jaxdeconf.data import buffer_add, buffer_indices, buffer_sample, replay, rollout
+from jaxdeconf.algos import names
+from jaxdeconf.algos.dil import Deconfounded, decoder_posterior_mean, final_latents
+from jaxdeconf.data import buffer_add, buffer_sample
 from jaxdeconf.models import action_features
 from jaxdeconf.train import build_algorithm, compiled_chunk, over_seeds, seed_keys, train_algorithm
 
@@ -73,108 +72,12 @@ def test_cached_latents_equal_per_batch_encoding(tiny_config):
     np.testing.assert_allclose(cached, direct, rtol=1e-5, atol=1e-6)
 
 
-def test_latent_moments_count_valid_steps_only():
-    """Hand values: dimension 0 takes 1, 3 on valid steps (mean 2, std 1), dimension 1 takes 5, 5 (std 0, floored at
-    0.01); the invalid step's 100 counts for nothing."""
-    latents = jnp.array([[[1.0, 5.0], [3.0, 5.0]], [[100.0, 100.0], [0.0, 0.0]]])  # [T=2, B=2, L=2]
-    valid = jnp.array([[True, True], [False, False]])
-    mean, std = latent_moments(latents, valid)
-    np.testing.assert_allclose(mean, [2.0, 5.0])
-    np.testing.assert_allclose(std, [1.0, 0.01])
-
-
-def test_standardised_latents_are_fit_to_the_buffer_and_read_the_same_online(tiny_config):
-    """``latent_norm=expert``: the policy steps refit θ-hat's moments to the buffer's cloning latents, the policy
-    is cloned on them standardised, and Algorithm 2 online (teacher-forced ``replay``) reads them the same way."""
-    algo = build_algorithm(tiny_config(**{"model.latent_norm": "expert", "model.policy_latent": "final"}), "dil")
-    state = algo.init(jax.random.key(0))
-    state, _ = algo.collect_expert(state, jax.random.key(1))
-    data = state.expert_buffer.data
-    fitted = algo.before_policy_steps(state, None)
-    latents = algo.training_context(state, data)
-    mean, std = fitted.latent_stats
-    assert float(std.min()) > 0.01  # Every dimension varies across episodes: a real standardisation, not the floor.
-    valid = np.asarray(data.valid)
-    z = (np.asarray(latents)[valid] - np.asarray(mean)) / np.asarray(std)
-    np.testing.assert_allclose(z.mean(0), 0.0, atol=1e-4)
-    np.testing.assert_allclose(z.std(0), 1.0, rtol=1e-3)
-    trained, _ = algo.update_policy(state, jax.random.key(2))
-    np.testing.assert_allclose(trained.latent_stats[0], mean, rtol=1e-6)
-    final = algo.posterior_means(trained, data)  # Online the policy reads the current step's belief.
-    expected = algo.policy_outputs(trained.policy.params, trained, data, final)
-    online = replay(algo.actor(), algo.actor_params(trained), data, algo.space)
-    np.testing.assert_allclose(online, expected, rtol=1e-4, atol=1e-5)
-    plain = build_algorithm(tiny_config(**{"model.policy_latent": "final"}), "dil")
-    raw = plain.policy_outputs(trained.policy.params, trained, data, final)
-    assert not np.allclose(raw, expected, atol=1e-3)
-
-
-@pytest.mark.parametrize("norm", ["none", "expert"])
-def test_mixed_exploration_commits_half_the_episodes_to_an_expert_latent(tiny_config, norm):
-    """``explore_latent=mixed``: of one iteration's own episodes, the first half are Algorithm 2 online, the second
-    half pi_eta with θ-hat held at the final posterior mean (as the policy reads it) of the expert-buffer episodes
-    drawn, recomputed here from the whole buffer's posterior and the draw's indices."""
-    algo = build_algorithm(tiny_config(**{"model.explore_latent": "mixed", "model.latent_norm": norm}), "dil")
-    state = algo.init(jax.random.key(0))
-    state, _ = algo.collect_expert(state, jax.random.key(1))
-    state = algo.before_policy_steps(state, None)
-    key = jax.random.key(2)
-    explored, _ = algo.collect_explore(state, key)
-    got = explored.explore_buffer
-    assert int(got.size) == 4
-    online, _ = rollout(algo.env, algo.env_params, algo.actor(), algo.actor_params(state), key, 2)
-    np.testing.assert_array_equal(got.data.action[:, :2], online.action)
-    k_pick, k_roll = jax.random.split(jax.random.fold_in(key, 1))
-    finals = np.asarray(training_latents(algo.posterior_means(state, state.expert_buffer.data),
-                                         state.expert_buffer.data.valid, "final")[-1])
-    z = finals[np.asarray(buffer_indices(state.expert_buffer, k_pick, 2))]
-    if norm == "expert":
-        z = (z - np.asarray(state.latent_stats[0])) / np.asarray(state.latent_stats[1])
-    params = {"policy": state.policy.params, "z": jnp.asarray(z)}
-    committed, _ = rollout(algo.env, algo.env_params, FixedLatentActor(algo.networks[2]), params, k_roll, 2)
-    np.testing.assert_array_equal(got.data.action[:, 2:4], committed.action)
-    np.testing.assert_allclose(got.data.obs.imitator[:, 2:4], committed.obs.imitator)
-    assert not np.array_equal(np.asarray(committed.action), np.asarray(online.action))
-
-
-def test_elbo_batch_from_both_buffers(tiny_config):
-    """``encoder_data=both``: an ELBO batch holds batch_size whole episodes, the first half the imitator's own and the
-    rest expert episodes, each a distinct stored episode of its buffer; ``explore`` draws from the own buffer only."""
-    both = build_algorithm(tiny_config(**{"model.policy_latent": "final", "train.encoder_data": "both"}), "dil")
-    state = both.init(jax.random.key(0))
-    state, _ = both.collect_expert(state, jax.random.key(1))
-    state, _ = both.collect_explore(state, jax.random.key(2))
-
-    def sources(batch):
-        own, expert = (np.asarray(b.data.action[:, : int(b.size)]).T for b in (state.explore_buffer,
-                                                                               state.expert_buffer))
-        return [("own" if any((a == o).all() for o in own) else "") + ("expert" if any((a == e).all() for e in expert)
-                                                                       else "") for a in np.asarray(batch.action).T]
-
-    assert sources(both.elbo_batch(state, jax.random.key(3))) == ["own", "own", "expert", "expert"]
-    plain = build_algorithm(tiny_config(**{"model.policy_latent": "final"}), "dil")
-    assert sources(plain.elbo_batch(state, jax.random.key(3))) == ["own"] * 4
-
-
-def test_sampled_policy_latents_scatter_around_the_posterior_mean(tiny_config):
-    """``policy_latent_draw=sample`` clones on θ-hat ~ q_phi: one draw per episode and key, different across keys,
-    averaging to the latent the ``mean`` setting clones on, with q_phi's own posterior spread."""
-    mean_algo = build_algorithm(tiny_config(**{"model.policy_latent": "final"}), "dil")
-    algo = build_algorithm(tiny_config(**{"model.policy_latent": "final", "model.policy_latent_draw": "sample"}), "dil")
-    state = algo.init(jax.random.key(0))
-    state, _ = algo.collect_expert(state, jax.random.key(1))
-    data = state.expert_buffer.data
-    centre = mean_algo.training_context(state, data)
-    draws = jax.vmap(lambda k: algo.policy_context(state, k))(jax.random.split(jax.random.key(3), 2000))
-    assert bool(jnp.all(draws == draws[:, :1]))  # One θ-hat per episode, shared by its steps.
-    assert not bool(jnp.allclose(draws[0], draws[1]))
-    _, logvar = algo.posterior(state, data)
-    last = jnp.maximum(jnp.sum(data.valid, axis=0) - 1, 0)
-    std = jnp.exp(0.5 * logvar[last, jnp.arange(last.shape[0])])
-    np.testing.assert_allclose(draws[:, 0].mean(0), centre[0], atol=float(4 * std.max() / np.sqrt(2000)))
-    np.testing.assert_allclose(draws[:, 0].std(0), std, rtol=0.1)
-    with pytest.raises(ValueError, match="needs a key"):
-        algo.training_context(state, data)
+def test_final_latents_take_each_episodes_last_valid_step():
+    """Hand values: episode 0 is valid for 2 of 3 steps, so its code is step 1's mean; episode 1 for all 3, step 2's;
+    an empty slot (no valid step) falls back to step 0."""
+    mean = jnp.arange(3 * 3 * 1, dtype=jnp.float32).reshape(3, 3, 1)  # mean[t, b] = 3 t + b.
+    valid = jnp.array([[True, True, False], [True, True, False], [False, True, False]])
+    np.testing.assert_array_equal(final_latents(mean, valid)[:, 0], [3.0, 7.0, 2.0])
 
 
 def test_decoder_posterior_mean_hand_values():
@@ -207,7 +110,7 @@ def test_matched_latents_equal_a_loop_over_codes_and_episodes(tiny_config):
     data, own = state.expert_buffer.data, state.explore_buffer
     got = np.asarray(algo.training_context(state, data))
     assert np.all(got == got[:1]) and not np.allclose(got[0, 0], got[0, 1])
-    codes = np.asarray(training_latents(algo.posterior_means(state, own.data), own.data.valid, "final")[0])
+    codes = np.asarray(final_latents(algo.posterior_means(state, own.data), own.data.valid))
     nll = algo.dynamics_nll(state)
     feats = action_features(algo.space, data.action)
     for b in range(data.valid.shape[1]):
@@ -228,7 +131,7 @@ def test_seed_keys_follow_seed_start(tiny_config):
     np.testing.assert_array_equal(jax.random.key_data(seed_keys(config)[1]), jax.random.key_data(jax.random.key(6)))
 
 
-@pytest.mark.parametrize("algo", ALGOS)
+@pytest.mark.parametrize("algo", names())
 def test_programs_call_no_lapack(tiny_config, algo):
     """The seed-vmapped init and chunk programs contain no LAPACK call: jaxlib 0.10.2's batched CPU LAPACK kernels
     split the seed batch over XLA's thread pool and deadlocked there (gdb: every thread idle, a LAPACK kernel

@@ -1,5 +1,4 @@
-"""Actors: the expert, the recurrent naive-BC / oracle policy, the deconfounded imitator of Algorithm 2, and its
-policy with a θ-hat held fixed per episode."""
+"""Actors: the expert, the recurrent naive-BC / oracle policy and the deconfounded imitator of Algorithm 2."""
 
 from __future__ import annotations
 
@@ -10,7 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxdeconf.envs.base import Environment, Observation
-from jaxdeconf.models import LOG_STD_MIN, Encoder, EvidenceEncoder, LatentPolicy, RecurrentPolicy, standardise
+from jaxdeconf.models import LOG_STD_MIN, Encoder, EvidenceEncoder, LatentPolicy, RecurrentPolicy
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,23 +51,6 @@ class RecurrentActor:
 
 
 @dataclasses.dataclass(frozen=True)
-class MarkovActor:
-    """A Markov policy on one view (``model.bc_memory=none``): no memory, no previous action."""
-
-    policy: LatentPolicy
-    view: str
-
-    def init_carry(self, batch: int) -> jax.Array:
-        """No recurrent state."""
-        return jnp.zeros((batch, 0), jnp.float32)
-
-    def __call__(self, params: Any, carry: jax.Array, obs: Observation, prev_action: jax.Array):
-        """The head on the current observation (an empty latent)."""
-        del prev_action  # Unused.
-        return carry, self.policy.apply(params, getattr(obs, self.view), carry)
-
-
-@dataclasses.dataclass(frozen=True)
 class DeconfoundedActor:
     """Algorithm 2: update the belief q_phi with (a_{t-1}, s_t), then act with pi_eta on its mean.
 
@@ -79,7 +61,6 @@ class DeconfoundedActor:
     encoder: Encoder | EvidenceEncoder
     policy: LatentPolicy
     delta_scale: Any = None  # [d] array, or None.
-    standardise: bool = False  # Read θ-hat as (mean − params["latent_stats"][0]) / params["latent_stats"][1].
 
     def init_carry(self, batch: int) -> Any:
         """Zero GRU state of the inference model (and, with deltas, no previous observation yet)."""
@@ -89,7 +70,7 @@ class DeconfoundedActor:
         return gru, jnp.zeros((batch, len(self.delta_scale)), jnp.float32), jnp.zeros((batch, 1), jnp.bool_)
 
     def __call__(self, params: dict[str, Any], carry: Any, obs: Observation, prev_action: jax.Array):
-        """params: {"encoder": ..., "policy": ...} (and "latent_stats" with ``standardise``)."""
+        """params: {"encoder": ..., "policy": ...}."""
         s = obs.imitator
         if self.delta_scale is None:
             gru, enc_obs = carry, s
@@ -99,23 +80,4 @@ class DeconfoundedActor:
         x = self.encoder.apply(params["encoder"], enc_obs, prev_action, method="embed")
         gru, (mean, _) = self.encoder.apply(params["encoder"], gru, x, method="recur")
         carry = gru if self.delta_scale is None else (gru, s, jnp.ones_like(started))
-        if self.standardise:
-            mean = standardise(mean, params["latent_stats"])
         return carry, self.policy.apply(params["policy"], s, mean)
-
-
-@dataclasses.dataclass(frozen=True)
-class FixedLatentActor:
-    """π_η on the imitator's view with a given θ-hat per episode: params {"policy": ..., "z": [B, L]} (z as the policy
-    reads it: standardised where the policy reads θ-hat standardised)."""
-
-    policy: LatentPolicy
-
-    def init_carry(self, batch: int) -> jax.Array:
-        """No recurrent state."""
-        return jnp.zeros((batch, 0), jnp.float32)
-
-    def __call__(self, params: dict[str, Any], carry: jax.Array, obs: Observation, prev_action: jax.Array):
-        """The policy head on (s, z)."""
-        del prev_action  # Unused: the policy is Markov.
-        return carry, self.policy.apply(params["policy"], obs.imitator, params["z"])

@@ -10,19 +10,15 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
-from jaxdeconf.config import ConfigError
+from jaxdeconf.errors import ConfigError
 from jaxdeconf.sharding import place
-
-#: State fields added after checkpoints were first written: stored only where set, so the checkpoints of runs that
-#: leave them unset keep the layout they always had and older ones restore.
-OPTIONAL_FIELDS = ("latent_stats",)
 
 
 def _to_raw(state: Any) -> dict[str, Any]:
-    """The state's fields as a dict orbax can store: the typed key as uint32 data, unset optional fields left out."""
+    """The state's fields as a dict orbax can store: the typed key as uint32 data."""
     raw = {f.name: getattr(state, f.name) for f in dataclasses.fields(state)}
     raw["key"] = jax.random.key_data(state.key)
-    return {name: value for name, value in raw.items() if not (name in OPTIONAL_FIELDS and value is None)}
+    return raw
 
 
 def _from_raw(raw: dict[str, Any], like: Any) -> Any:

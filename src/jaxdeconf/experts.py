@@ -8,6 +8,7 @@ JSON and restores the parameters; ``save_expert`` writes both without touching a
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import json
 from pathlib import Path
 from typing import Any
@@ -16,10 +17,10 @@ import flax.serialization
 import jax
 import jax.numpy as jnp
 
-import jaxdeconf.envs
 from jaxdeconf.ppo import ExpertNetwork
 
-EXPERT_DIR = Path(jaxdeconf.envs.__file__).resolve().parent / "experts"
+# Found without importing ``jaxdeconf.envs`` (whose envs import this module): the envs package's folder on disk.
+EXPERT_DIR = Path(importlib.util.find_spec("jaxdeconf.envs").submodule_search_locations[0]).resolve() / "experts"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -18,7 +18,7 @@ import time
 from collections.abc import Iterator
 from typing import Any
 
-from jaxdeconf.config import ConfigError
+from jaxdeconf.errors import ConfigError
 
 #: Temporary files this module leaves behind when killed mid-write start with this prefix (cleaned up on next start).
 TMP_PREFIX = ".tmp-"

@@ -12,7 +12,9 @@ import dataclasses
 import os
 from typing import Any
 
-from jaxdeconf.config import Config, ConfigError
+from jaxdeconf.algos import algorithm_class
+from jaxdeconf.config import Config
+from jaxdeconf.errors import ConfigError
 
 GIB = 2**30
 
@@ -43,9 +45,7 @@ def episode_bytes(env: Any, params: Any) -> int:
 def estimate(config: Config, algo: str, env: Any, params: Any) -> Estimate:
     """Generous estimate of the memory ``algo`` needs to train ``config.seeds`` seeds at once."""
     m, t = config.model, config.train
-    # Episodes held: dil keeps its own episodes besides the expert's; gail one iteration of generator rollouts.
-    generated = config.gail.rollout_factor * t.episodes_per_iter if algo == "gail" else 0
-    stored = t.buffer_episodes * (2 if algo == "dil" else 1) + generated
+    cls = algorithm_class(algo)
     horizon = env.horizon(params)
     # Dense and GRU weights of the policy and (dil) of encoder and decoder, with AdamW's two moments: x3.
     hidden = 6 * m.width**2 + 6 * (m.gru + m.width) * m.gru + 6 * (m.bc_gru + m.width) * m.bc_gru
@@ -54,10 +54,8 @@ def estimate(config: Config, algo: str, env: Any, params: Any) -> Estimate:
     # and the decoder's K predictions of the next observations.
     obs = env.obs_sizes(params).imitator
     per_step = 4 * (4 * (m.gru + m.bc_gru) + 6 * m.width + 2 * m.latent + t.prediction_steps * (2 * m.width + obs))
-    synthetic = config.offline.synthetic_episodes if algo == "dil_offline" else 0  # Rolled out through p_psi.
-    batch = max(t.batch_size, t.episodes_per_iter, t.eval_episodes, generated, synthetic)
-    working = batch * (episode_bytes(env, params) + horizon * per_step)
-    return Estimate(algo=algo, buffers=config.seeds * stored * episode_bytes(env, params),
+    working = cls.episodes_in_flight(config) * (episode_bytes(env, params) + horizon * per_step)
+    return Estimate(algo=algo, buffers=config.seeds * cls.stored_episodes(config) * episode_bytes(env, params),
                     params=config.seeds * param_bytes, working=config.seeds * working)
 
 

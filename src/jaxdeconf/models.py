@@ -133,12 +133,8 @@ class StepInput(nn.Module):
         self.interact = Interaction()
         self.fuse = MLP((self.width,))
 
-    def fused(self, obs: jax.Array, prev_action: jax.Array, read_action: bool = True) -> jax.Array:
-        """[..., width] for any leading shape: the observation and the action that led to it, fused; with
-        ``read_action`` False zeros in place of the action (an encoder's ``read_actions``, ``model.encoder_actions``),
-        so the parameters are the same either way."""
-        if not read_action:
-            prev_action = jnp.zeros_like(prev_action)
+    def fused(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
+        """[..., width] for any leading shape: the observation and the action that led to it, fused."""
         return self.fuse(self.interact(self.obs_net(obs), self.action_net(prev_action)))
 
 
@@ -147,7 +143,6 @@ class Encoder(StepInput):
 
     hidden: int
     latent: int
-    read_actions: bool = True  # False: q_phi reads the transitions alone, not the action that led to each.
 
     def setup(self) -> None:
         """Sub-networks shared by ``embed`` and ``recur``."""
@@ -157,7 +152,7 @@ class Encoder(StepInput):
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
         """GRU inputs [..., width] for any leading shape."""
-        return self.fused(obs, prev_action, self.read_actions)
+        return self.fused(obs, prev_action)
 
     def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         """One GRU step: carry [B, hidden], x [B, E] -> new carry, (mean, logvar) each [B, latent]."""
@@ -183,7 +178,6 @@ class EvidenceEncoder(StepInput):
     """
 
     latent: int
-    read_actions: bool = True  # False: q_phi reads the transitions alone, not the action that led to each.
 
     @property
     def hidden(self) -> int:
@@ -197,7 +191,7 @@ class EvidenceEncoder(StepInput):
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
         """One factor per step [..., 2 * latent]: (p m, p) with p = softplus(.) > 0."""
-        mean, raw = jnp.split(self.out(self.fused(obs, prev_action, self.read_actions)), 2, axis=-1)
+        mean, raw = jnp.split(self.out(self.fused(obs, prev_action)), 2, axis=-1)
         precision = nn.softplus(raw)
         return jnp.concatenate([precision * mean, precision], axis=-1)
 
@@ -235,7 +229,7 @@ class FilterEncoder(EvidenceEncoder):
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
         """The step's fused features [..., width]; the factor needs the belief, so it is formed in ``recur``."""
-        return self.fused(obs, prev_action, self.read_actions)
+        return self.fused(obs, prev_action)
 
     def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         """Add the factor of step x [B, width] given the belief in carry [B, 2L] -> new carry, (mean, logvar)."""
@@ -245,36 +239,25 @@ class FilterEncoder(EvidenceEncoder):
         return carry, self.belief(carry)
 
 
-def make_encoder(
-    kind: str, width: int, action_embed: int, gru: int, latent: int, read_actions: bool = True
-) -> Encoder | EvidenceEncoder:
-    """q_phi by ``model.encoder``'s name: "gru" (hidden size ``gru``), "evidence" or "filter"; with ``read_actions``
-    False it ignores the previous action (``model.encoder_actions``)."""
+def make_encoder(kind: str, width: int, action_embed: int, gru: int, latent: int) -> Encoder | EvidenceEncoder:
+    """q_phi by ``model.encoder``'s name: "gru" (hidden size ``gru``), "evidence" or "filter"."""
     if kind == "gru":
-        return Encoder(width, action_embed, gru, latent, read_actions)
-    return {"evidence": EvidenceEncoder, "filter": FilterEncoder}[kind](width, action_embed, latent, read_actions)
+        return Encoder(width, action_embed, gru, latent)
+    return {"evidence": EvidenceEncoder, "filter": FilterEncoder}[kind](width, action_embed, latent)
 
 
 class Decoder(nn.Module):
-    """p_psi(s_{t+k+1} | z_t, s_{t+k}, a_{t+k}): the next observation's mean or logits.
-
-    ``latent="joint"`` reads z with the observation and the action through one MLP (z may change what an action does);
-    ``"additive"`` gives z its own MLP whose output is added to the state-action MLP's, so the outputs are
-    f(s, a) + g(z) and z shifts them alike in every state (``model.decoder_latent``)."""
+    """p_psi(s_{t+k+1} | z_t, s_{t+k}, a_{t+k}): the next observation's mean or logits. z is read with the
+    observation and the action through one MLP (the reference code's), so z may change what an action does."""
 
     width: int
     action_embed: int
     obs_size: int
-    latent: str = "joint"
 
     @nn.compact
     def __call__(self, z: jax.Array, obs: jax.Array, action: jax.Array) -> jax.Array:
         """Predict the next observation's parameters from the latent, the current observation and action."""
         embedded = nn.Dense(self.action_embed)(action)
-        if self.latent == "additive":
-            h = jnp.concatenate([MLP((self.width, self.width))(obs), embedded], axis=-1)
-            state_part = nn.Dense(self.obs_size)(MLP((self.width, self.width))(h))
-            return state_part + nn.Dense(self.obs_size)(MLP((self.width,))(z))
         h = jnp.concatenate([MLP((self.width, self.width))(obs), Interaction()(z, embedded)], axis=-1)
         return nn.Dense(self.obs_size)(MLP((self.width, self.width))(h))
 
@@ -297,13 +280,6 @@ class LatentPolicy(nn.Module):
         else:
             h = jnp.concatenate([MLP((self.width, self.width))(obs), z], axis=-1)
         return nn.Dense(self.out_size)(MLP((self.width, self.width))(h))
-
-
-def standardise(z: jax.Array, stats: tuple[jax.Array, jax.Array]) -> jax.Array:
-    """(z − mean) / std for z [..., L] and ``stats`` = (mean, std) [L] each: θ-hat as dil's policy reads it with
-    ``model.latent_norm=expert``."""
-    mean, std = stats
-    return (z - mean) / std
 
 
 class RecurrentPolicy(StepInput):

@@ -289,11 +289,11 @@ def appendix_a_learned(out: pathlib.Path, runs: dict[tuple[float, float], pathli
 
 def learned_actor(folder: pathlib.Path, algo: str, seed_index: int = 0) -> tuple[Any, Any, Any, Any]:
     """(env, env_params, actor, actor_params) of seed ``seed_index`` of a trained ``algo`` in a results folder."""
-    from jaxdeconf import config as cfg
+    from jaxdeconf import resolve
     from jaxdeconf.checkpoint import Checkpoints
     from jaxdeconf.train import build_algorithm, seed_keys
 
-    config = cfg.from_dict(json.loads((folder / "config.json").read_text()))
+    config = resolve.from_dict(json.loads((folder / "config.json").read_text()))
     algo_obj = build_algorithm(config, algo)
     states = jax.jit(jax.vmap(algo_obj.init))(seed_keys(config))
     ckpt = Checkpoints(folder / algo / "checkpoints")

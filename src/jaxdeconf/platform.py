@@ -1,5 +1,6 @@
 """Process set-up of the command-line tools, done before JAX starts its backend: how many devices this machine's CPU
-shows, and joining a run spread over several processes or hosts. A library user's process is left as JAX sets it up.
+shows, joining a run spread over several processes or hosts, and pinning a process to one core. A library user's
+process is left as JAX sets it up.
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ from typing import Any
 
 import jax
 
-from jaxdeconf.config import ConfigError
+from jaxdeconf.errors import ConfigError
 
 # The usual variables of a multi-host launch, read when the flags leave them out (SLURM's are detected by JAX itself).
 COORDINATOR_ENV, PROCESSES_ENV, PROCESS_ID_ENV = "JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"
@@ -62,3 +63,19 @@ def join(args: dict[str, Any], timeout_s: int = 300) -> None:
     until all have joined, or fails after ``timeout_s``."""
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     jax.distributed.initialize(**args, initialization_timeout=timeout_s)
+
+
+def pin_to_core(core: int) -> None:
+    """Run this process on one CPU core (Linux; elsewhere a no-op), before JAX starts its backend: for measurements
+    of one core's speed, and test processes that share a machine. Training processes are not pinned."""
+    if hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {core})
+
+
+# The cores this process was allowed when it started (before any pinning of its own).
+_CORES = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else [0]
+
+
+def available_cores() -> list[int]:
+    """Cores this process was started with (a user's ``taskset`` is respected)."""
+    return list(_CORES)

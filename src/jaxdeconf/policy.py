@@ -22,9 +22,11 @@ import numpy as np
 from flax import struct
 
 from jaxdeconf import config as cfg
+from jaxdeconf import resolve
 from jaxdeconf.actors import ExpertActor
 from jaxdeconf.checkpoint import Checkpoints
 from jaxdeconf.envs.base import NormalizedViews, Observation
+from jaxdeconf.errors import ConfigError
 from jaxdeconf.gym import GymEnv, GymVectorEnv, step_key
 from jaxdeconf.models import action_features, sample
 
@@ -117,8 +119,8 @@ def load_config(folder: str | pathlib.Path) -> cfg.Config:
     """The config a results folder was trained with."""
     path = pathlib.Path(folder) / "config.json"
     if not path.exists():
-        raise cfg.ConfigError(f"{folder} is not a results folder (no config.json)")
-    return cfg.from_dict(json.loads(path.read_text()))
+        raise ConfigError(f"{folder} is not a results folder (no config.json)")
+    return resolve.from_dict(json.loads(path.read_text()))
 
 
 def load_state(folder: str | pathlib.Path, algo: str) -> tuple[Any, Any, cfg.Config]:
@@ -128,13 +130,13 @@ def load_state(folder: str | pathlib.Path, algo: str) -> tuple[Any, Any, cfg.Con
     folder = pathlib.Path(folder)
     config = load_config(folder)
     if algo not in config.algos:
-        raise cfg.ConfigError(f"{folder} holds no {algo!r} run; it has {', '.join(config.algos)}")
+        raise ConfigError(f"{folder} holds no {algo!r} run; it has {', '.join(config.algos)}")
     algorithm = build_algorithm(config, algo)
     ckpt = Checkpoints(folder / algo / "checkpoints")
     step = ckpt.latest_step()
     if step is None:
         ckpt.close()
-        raise cfg.ConfigError(f"{folder / algo} has no checkpoint yet")
+        raise ConfigError(f"{folder / algo} has no checkpoint yet")
     states = ckpt.restore(step, jax.jit(jax.vmap(algorithm.init))(seed_keys(config)))
     ckpt.close()
     return algorithm, states, config
@@ -166,7 +168,7 @@ def load_policy(folder: str | pathlib.Path, algo: str, seed: int = 0) -> Policy:
     algorithm, states, config = load_state(folder, algo)
     index = seed - config.seed_start
     if not 0 <= index < config.seeds:
-        raise cfg.ConfigError(f"seed {seed} was not trained in {folder}: seeds are {config.seed_start}.."
+        raise ConfigError(f"seed {seed} was not trained in {folder}: seeds are {config.seed_start}.."
                               f"{config.seed_start + config.seeds - 1}")
     state = jax.tree.map(lambda x: x[index], states)
     return Policy(algorithm, algorithm.actor_params(state))

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdeconf.config import ConfigError
+from jaxdeconf.errors import ConfigError
 from jaxdeconf.policy import Policy, expert_policy, load_policy
 
 

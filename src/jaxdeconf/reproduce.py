@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from jaxdeconf.config import ConfigError
+from jaxdeconf.errors import ConfigError
 from jaxdeconf.files import FolderLock, command_line, read_json, remove_temporaries, writable, write_atomic
 from jaxdeconf.processes import Stopped, signals_raise, stop_processes
 

@@ -10,14 +10,10 @@ from typing import Any
 
 import numpy as np
 
+from jaxdeconf import algos
 from jaxdeconf.config import Config
 from jaxdeconf.files import read_rows, write_atomic
 
-# Which exact reference each algorithm should match on the bandit (see the paper, section 5.1).
-TARGET = {"bc": "conditional", "dil": "interventional", "oracle": "expert", "dagger": "interventional",
-          "dil_offline": "interventional"}
-COLORS = {"bc": "tab:red", "oracle": "tab:green", "dil": "tab:blue", "dagger": "tab:purple", "gail": "tab:orange",
-          "dil_offline": "tab:cyan"}
 SMOOTH = 5  # Sliding window (evaluations) of comparison.png, as in the paper's figures.
 
 
@@ -157,8 +153,8 @@ def plot(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> l
                 continue
             m, se = mean_se(np.load(path)[f"p_best_{where}"])
             t = np.arange(m.size)
-            ax.plot(t, m, color=COLORS.get(algo), label=algo)
-            ax.fill_between(t, m - se, m + se, alpha=0.25, color=COLORS.get(algo))
+            ax.plot(t, m, color=algos.color(algo), label=algo)
+            ax.fill_between(t, m - se, m + se, alpha=0.25, color=algos.color(algo))
         ax.plot(refs[f"interventional_{where}"], "k--", lw=1, label="exact interventional")
         ax.plot(refs[f"conditional_{where}"], "k-.", lw=1, label="exact conditional")
         ax.set_title(f"P(best arm) {title}")
@@ -189,8 +185,8 @@ def plot_diagnostics(folder: pathlib.Path, config: Config, bins: int = 6) -> lis
             if probe is not None and np.isfinite(probe).any():
                 m, se = mean_se(probe)
                 t = np.arange(m.size)
-                left.plot(t, m, style, color=COLORS.get(algo), label=f"{algo} ({where} episodes)")
-                left.fill_between(t, m - se, m + se, alpha=0.2, color=COLORS.get(algo))
+                left.plot(t, m, style, color=algos.color(algo), label=f"{algo} ({where} episodes)")
+                left.fill_between(t, m - se, m + se, alpha=0.2, color=algos.color(algo))
     left.set(xlabel="step t", ylabel="held-out R² of θ from the belief", title="how much of θ the belief carries")
     left.set_ylim(-0.2, 1.0)
     left.legend(fontsize=7)
@@ -219,7 +215,7 @@ def _per_theta_bin(ax: Any, curves: dict[str, dict[str, np.ndarray]], env: Any, 
         with np.errstate(invalid="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)  # A bin no episode of a seed fell in.
             m, se = mean_se(per_seed)
-        ax.errorbar(centres, m, yerr=se, marker="o", ms=3, capsize=2, color=COLORS.get(algo), label=algo)
+        ax.errorbar(centres, m, yerr=se, marker="o", ms=3, capsize=2, color=algos.color(algo), label=algo)
     ax.set(xlabel="θ (per episode; its norm when θ is a vector)", ylabel=label, title="final evaluation by θ")
     ax.legend(fontsize=7)
 
@@ -233,8 +229,8 @@ def _return_curves(ax: Any, folder: pathlib.Path, config: Config, window: int | 
             continue
         iters, returns = eval_table(rows, "eval_return")
         m, se = mean_se(returns if window is None else smooth(returns, window))
-        ax.plot(iters, m, label=algo, color=COLORS.get(algo))
-        ax.fill_between(iters, m - se, m + se, alpha=alpha, color=COLORS.get(algo))
+        ax.plot(iters, m, label=algo, color=algos.color(algo))
+        ax.fill_between(iters, m - se, m + se, alpha=alpha, color=algos.color(algo))
 
 
 def smooth(x: np.ndarray, window: int) -> np.ndarray:

@@ -19,8 +19,9 @@ from tqdm import tqdm
 from jaxdeconf.algos import make_algorithm
 from jaxdeconf.algos.base import Algorithm, TrainState
 from jaxdeconf.checkpoint import Checkpoints
-from jaxdeconf.config import Config, ConfigError
+from jaxdeconf.config import Config
 from jaxdeconf.envs import make
+from jaxdeconf.errors import ConfigError
 from jaxdeconf.files import (
     append_lines,
     dumps_row,

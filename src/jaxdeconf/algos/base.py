@@ -10,7 +10,7 @@ algorithm subclasses ``Algorithm`` in a file of its own and fills in the hooks (
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -52,7 +52,6 @@ class TrainState:
     explore_buffer: Buffer | None  # The imitator's own episodes (dil's exploration data, gail's latest rollouts).
     key: jax.Array
     iteration: jax.Array  # int32: iterations done.
-    latent_stats: Any = None  # dil with ``model.latent_norm=expert``: θ-hat's (mean, std) [L] each; else None.
 
 
 def make_optimizer(lr: float, weight_decay: float, clip: float) -> optax.GradientTransformation:
@@ -105,6 +104,21 @@ class Algorithm:
     env: Environment
     env_params: Any
     config: Config
+
+    #: The config section this algorithm owns (``config.<name>``, overridable as ``<name>.field``) and its dataclass,
+    #: or None. Several registry names may share one class and so one section (bc and oracle: none).
+    settings: ClassVar[tuple[str, type] | None] = None
+
+    @classmethod
+    def stored_episodes(cls, config: Config) -> int:
+        """Episodes one seed keeps in its buffers (for ``memory.estimate``): the expert buffer by default."""
+        return config.train.buffer_episodes
+
+    @classmethod
+    def episodes_in_flight(cls, config: Config) -> int:
+        """The largest batch of episodes one seed's step works on (for ``memory.estimate``)."""
+        t = config.train
+        return max(t.batch_size, t.episodes_per_iter, t.eval_episodes)
 
     @property
     def space(self) -> Any:
@@ -159,11 +173,6 @@ class Algorithm:
         del state, key  # Unused.
         return None
 
-    def before_policy_steps(self, state: TrainState, context: jax.Array | None) -> TrainState:
-        """What the policy steps hold fixed besides ``context``, fitted just before them (none by default)."""
-        del context  # Unused.
-        return state
-
     def update_encoder(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
         """Inference-model updates (none by default)."""
         del key  # Unused.
@@ -193,7 +202,6 @@ class Algorithm:
         """``policy_steps`` BC steps on batches of whole expert episodes."""
         grad_fn = jax.value_and_grad(self.policy_loss)
         context = self.policy_context(state, jax.random.fold_in(key, 1))  # Leaves the steps' keys as they were.
-        state = self.before_policy_steps(state, context)
 
         def step(learner: Learner, step_key: jax.Array) -> tuple[Learner, jax.Array]:
             idx = buffer_indices(state.expert_buffer, step_key, self.config.train.batch_size)

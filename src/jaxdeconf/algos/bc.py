@@ -9,10 +9,10 @@ import jax
 import jax.numpy as jnp
 
 from jaxdeconf import losses
-from jaxdeconf.actors import MarkovActor, RecurrentActor
+from jaxdeconf.actors import RecurrentActor
 from jaxdeconf.algos.base import Algorithm, Learner, TrainState
 from jaxdeconf.data import Trajectory
-from jaxdeconf.models import LatentPolicy, RecurrentPolicy, action_features, head_size
+from jaxdeconf.models import RecurrentPolicy, action_features, head_size
 
 
 @dataclasses.dataclass(frozen=True)
@@ -22,24 +22,16 @@ class BehaviourCloning(Algorithm):
     view: str = "imitator"
 
     @property
-    def recurrent(self) -> bool:
-        """Whether the network is the recurrent policy (``model.bc_memory=gru``) or a Markov one."""
-        return self.config.model.bc_memory == "gru"
-
-    @property
-    def network(self) -> RecurrentPolicy | LatentPolicy:
-        """The recurrent policy, or (``model.bc_memory=none``) dil's Markov policy network with an empty latent."""
+    def network(self) -> RecurrentPolicy:
+        """The recurrent policy over the view and the previous action."""
         m = self.config.model
-        if not self.recurrent:
-            return LatentPolicy(m.width, head_size(self.space))
         return RecurrentPolicy(m.width, m.action_embed, m.bc_gru, head_size(self.space))
 
     def init(self, key: jax.Array) -> TrainState:
         """Fresh policy and an expert buffer."""
         key, k_init = jax.random.split(key)
         size = getattr(self.env.obs_sizes(self.env_params), self.view)
-        second = jnp.zeros((1, self.space.feature_size if self.recurrent else 0))
-        params = self.network.init(k_init, jnp.zeros((1, size)), second)
+        params = self.network.init(k_init, jnp.zeros((1, size)), jnp.zeros((1, self.space.feature_size)))
         return TrainState(
             policy=Learner(params, self.policy_tx.init(params)),
             encoder=None,
@@ -49,9 +41,9 @@ class BehaviourCloning(Algorithm):
             iteration=jnp.zeros((), jnp.int32),
         )
 
-    def actor(self) -> RecurrentActor | MarkovActor:
+    def actor(self) -> RecurrentActor:
         """The policy acting on its view."""
-        return RecurrentActor(self.network, self.view) if self.recurrent else MarkovActor(self.network, self.view)
+        return RecurrentActor(self.network, self.view)
 
     def actor_params(self, state: TrainState) -> Any:
         """Policy parameters."""
@@ -60,10 +52,8 @@ class BehaviourCloning(Algorithm):
     def policy_outputs(
         self, policy_params: Any, state: TrainState, traj: Trajectory, context: jax.Array | None = None
     ) -> jax.Array:
-        """GRU over the view and the previous expert actions (or the Markov head on each step's view)."""
+        """GRU over the view and the previous expert actions."""
         del state, context  # Unused.
         obs = getattr(traj.obs, self.view)[: traj.horizon]
-        if not self.recurrent:
-            return self.network.apply(policy_params, obs, jnp.zeros((*obs.shape[:-1], 0)))
         prev = losses.prev_actions(action_features(self.space, traj.action))
         return losses.recurrent_policy_scan(self.network, policy_params, obs, prev)

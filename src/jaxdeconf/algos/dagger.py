@@ -17,11 +17,21 @@ import jax
 import jax.numpy as jnp
 
 from jaxdeconf import losses
-from jaxdeconf.actors import ExpertActor, MarkovActor, RecurrentActor
+from jaxdeconf.actors import ExpertActor, RecurrentActor
 from jaxdeconf.algos.base import TrainState
 from jaxdeconf.algos.bc import BehaviourCloning
+from jaxdeconf.config import field
 from jaxdeconf.data import Tagged, buffer_add, replay, rollout
 from jaxdeconf.envs.base import Observation
+
+
+@dataclasses.dataclass(frozen=True)
+class DaggerConfig:
+    """DAgger's mixture schedule (its policy and BC steps are bc's: ``model.bc_gru``, ``train.policy_*``)."""
+
+    # beta, the probability that a step executes the expert's action, falls linearly from 1 at iteration 0 to 0 at
+    # this iteration and stays 0 after; 0 means the imitator acts alone from the start.
+    anneal_iterations: int = field(125, ">=0")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,7 +42,7 @@ class MixtureActor:
     t is drawn from ``fold_in(key, t)``, independent of the key that samples the action from the chosen head.
     """
 
-    imitator: RecurrentActor | MarkovActor
+    imitator: RecurrentActor
     expert: ExpertActor
 
     def init_carry(self, batch: int) -> tuple[jax.Array, jax.Array]:
@@ -59,6 +69,8 @@ def mixture_beta(iteration: jax.Array, anneal_iterations: int) -> jax.Array:
 @dataclasses.dataclass(frozen=True)
 class DAgger(BehaviourCloning):
     """bc's network and BC steps; the data stream is the expert/imitator mixture with the expert's labels."""
+
+    settings = ("dagger", DaggerConfig)
 
     def expert_labels(self, traj: Any) -> jax.Array:
         """The expert's action distribution [T, B, n] (or action [T, B, A]) at every state of ``traj``."""

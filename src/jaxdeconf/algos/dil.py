@@ -12,16 +12,16 @@ import jax.numpy as jnp
 import optax
 
 from jaxdeconf import losses
-from jaxdeconf.actors import DeconfoundedActor, FixedLatentActor
+from jaxdeconf.actors import DeconfoundedActor
 from jaxdeconf.algos.base import (
     Algorithm,
     Learner,
     TrainState,
     apply_gradients,
     make_optimizer,
-    masked_moments,
     observation_delta_scale,
 )
+from jaxdeconf.config import Config
 from jaxdeconf.data import Trajectory, buffer_add, buffer_sample, rollout
 from jaxdeconf.envs import ObsGroup
 from jaxdeconf.models import (
@@ -32,7 +32,6 @@ from jaxdeconf.models import (
     action_features,
     head_size,
     make_encoder,
-    standardise,
 )
 
 
@@ -40,11 +39,16 @@ from jaxdeconf.models import (
 class Deconfounded(Algorithm):
     """Algorithm 1: an inference model trained by the sequential ELBO on the imitator's own episodes, and a
     latent-conditional policy cloned on expert episodes with θ-hat = the posterior mean at the current step (or, with
-    ``model.policy_latent=final``, after the whole episode).
+    ``model.policy_latent=matched``, a code of the imitator's own episodes matched by the decoder's likelihood).
 
     For Gaussian observation likelihoods the decoder predicts standardised one-step changes of the observation; the
     per-dimension scale is fixed once from expert data (``delta_scale``), as the paper normalises from expert data.
     """
+
+    @classmethod
+    def stored_episodes(cls, config: Config) -> int:
+        """The expert buffer and the buffer of the imitator's own episodes."""
+        return 2 * config.train.buffer_episodes
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "delta_scale", observation_delta_scale(self.env, self.env_params)
@@ -66,8 +70,8 @@ class Deconfounded(Algorithm):
         m = self.config.model
         size = self.env.obs_sizes(self.env_params).imitator
         return (
-            make_encoder(m.encoder, m.width, m.action_embed, m.gru, m.latent, m.encoder_actions),
-            Decoder(m.width, m.action_embed, size, m.decoder_latent),
+            make_encoder(m.encoder, m.width, m.action_embed, m.gru, m.latent),
+            Decoder(m.width, m.action_embed, size),
             LatentPolicy(m.width, head_size(self.space), m.policy_fusion),
         )
 
@@ -105,48 +109,23 @@ class Deconfounded(Algorithm):
             explore_buffer=self._empty_buffer(),
             key=key,
             iteration=jnp.zeros((), jnp.int32),
-            latent_stats=(jnp.zeros(latent), jnp.ones(latent)) if self.standardises else None,
         )
-
-    @property
-    def standardises(self) -> bool:
-        """Whether the policy reads θ-hat standardised (``model.latent_norm=expert``)."""
-        return self.config.model.latent_norm == "expert"
-
-    def as_policy_reads(self, state: TrainState, z: jax.Array) -> jax.Array:
-        """θ-hat as pi_eta reads it: standardised by the expert buffer's moments where it is, else as it is."""
-        return standardise(z, state.latent_stats) if self.standardises else z
 
     def actor(self) -> DeconfoundedActor:
         """Algorithm 2."""
         encoder, _, policy = self.networks
-        return DeconfoundedActor(encoder, policy, self.encoder_scale, self.standardises)
+        return DeconfoundedActor(encoder, policy, self.encoder_scale)
 
     def actor_params(self, state: TrainState) -> dict[str, Any]:
-        """Encoder and policy parameters (and θ-hat's standardisation, when the policy reads it standardised)."""
-        params = {"encoder": state.encoder.params["encoder"], "policy": state.policy.params}
-        return {**params, "latent_stats": state.latent_stats} if self.standardises else params
+        """Encoder and policy parameters."""
+        return {"encoder": state.encoder.params["encoder"], "policy": state.policy.params}
 
     def collect_explore(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
-        """The imitator's own episodes: pi_eta on the current posterior mean (Algorithm 2) and, with
-        ``model.explore_latent=mixed``, half of them with θ-hat held at an expert episode's (``committed_episodes``)."""
+        """The imitator's own episodes: pi_eta on the current posterior mean (Algorithm 2)."""
         n = self.config.train.episodes_per_iter
-        committed = n // 2 if self.config.model.explore_latent == "mixed" else 0
-        traj, _ = rollout(self.env, self.env_params, self.actor(), self.actor_params(state), key, n - committed)
-        buffer = buffer_add(state.explore_buffer, traj)
-        if committed:
-            buffer = buffer_add(buffer, self.committed_episodes(state, jax.random.fold_in(key, 1), committed))
-        return state.replace(explore_buffer=buffer), {"train_return": jnp.mean(jnp.sum(traj.reward, axis=0))}
-
-    def committed_episodes(self, state: TrainState, key: jax.Array, n: int) -> Trajectory:
-        """``n`` episodes of pi_eta with θ-hat fixed per episode at the final posterior mean of an expert-buffer episode
-        drawn uniformly (as the policy reads θ-hat: standardised where it is). The draw ignores the episode's own θ."""
-        k_pick, k_roll = jax.random.split(key)
-        picked = buffer_sample(state.expert_buffer, k_pick, n)
-        z = self.as_policy_reads(state, training_latents(self.posterior_means(state, picked), picked.valid, "final")[0])
-        _, _, policy = self.networks
-        params = {"policy": state.policy.params, "z": z}
-        return rollout(self.env, self.env_params, FixedLatentActor(policy), params, k_roll, n)[0]
+        traj, _ = rollout(self.env, self.env_params, self.actor(), self.actor_params(state), key, n)
+        state = state.replace(explore_buffer=buffer_add(state.explore_buffer, traj))
+        return state, {"train_return": jnp.mean(jnp.sum(traj.reward, axis=0))}
 
     @property
     def elbo_fn(self) -> Any:
@@ -177,24 +156,13 @@ class Deconfounded(Algorithm):
 
         def step(learner: Learner, step_key: jax.Array) -> tuple[Learner, dict[str, jax.Array]]:
             k_batch, k_noise = jax.random.split(step_key)
-            batch = self.elbo_batch(state, k_batch)
+            batch = buffer_sample(state.explore_buffer, k_batch, t.batch_size)
             feats = action_features(self.space, batch.action)
             (loss, metrics), grads = grad_fn(learner.params, batch.obs.imitator, feats, batch.valid, k_noise)
             return apply_gradients(learner, grads, self.encoder_tx), {"elbo_loss": loss, **metrics}
 
         learner, metrics = jax.lax.scan(step, state.encoder, jax.random.split(key, t.encoder_steps))
         return state.replace(encoder=learner), jax.tree.map(jnp.mean, metrics)
-
-    def elbo_batch(self, state: TrainState, key: jax.Array) -> Trajectory:
-        """Whole episodes for one ELBO step: ``batch_size`` of the imitator's own, or with ``train.encoder_data=both``
-        half (rounded up) of them and the rest from the expert buffer."""
-        t = self.config.train
-        if t.encoder_data == "explore":
-            return buffer_sample(state.explore_buffer, key, t.batch_size)
-        k_own, k_expert = jax.random.split(key)
-        own = buffer_sample(state.explore_buffer, k_own, t.batch_size - t.batch_size // 2)
-        expert = buffer_sample(state.expert_buffer, k_expert, t.batch_size // 2)
-        return jax.tree.map(lambda a, b: jnp.concatenate([a, b], axis=1), own, expert)
 
     def posterior(self, state: TrainState, traj: Trajectory) -> tuple[jax.Array, jax.Array]:
         """Posterior means and log-variances [T, B, L] of q_phi along ``traj``, detached: the policy never trains the
@@ -213,41 +181,21 @@ class Deconfounded(Algorithm):
         return self.posterior_means(state, traj)
 
     def policy_context(self, state: TrainState, key: jax.Array) -> jax.Array | None:
-        """The encoder is frozen during the policy steps, so when the policy steps would encode at least as many
-        episodes as the buffer holds, encoding the whole buffer once gives the same latents for less work.
-        ``random_step``, ``matched`` and ``sample`` always encode the buffer once (``matched`` weighs every expert
-        episode against every stored own episode, too costly per batch); the draws (a step, a θ-hat per episode) are
-        made here, once per iteration, from ``key``."""
-        t, m = self.config.train, self.config.model
-        drawn = m.policy_latent in ("random_step", "matched") or m.policy_latent_draw == "sample"
-        if not drawn and t.buffer_episodes > t.batch_size * t.policy_steps:
+        """θ-hat along the whole expert buffer, computed once before the policy steps: the encoder is frozen during
+        them, so where the steps would encode at least as many episodes as the buffer holds this is the same latents
+        for less work; ``matched`` always encodes the buffer once (it weighs every expert episode against every stored
+        own episode, too costly per batch)."""
+        del key  # Unused: the latents are posterior means, no draw.
+        t = self.config.train
+        if self.config.model.policy_latent == "current" and t.buffer_episodes > t.batch_size * t.policy_steps:
             return None
-        data = state.expert_buffer.data
-        return self.training_context(state, data, key)
+        return self.training_context(state, state.expert_buffer.data)
 
-    def before_policy_steps(self, state: TrainState, context: jax.Array | None) -> TrainState:
-        """With ``model.latent_norm=expert``, refit θ-hat's standardisation to the latents the policy is about to be
-        cloned on along the whole expert buffer (``context``, or the buffer's posterior means when none was drawn)."""
-        if not self.standardises:
-            return state
-        data = state.expert_buffer.data
-        latents = self.training_context(state, data) if context is None else context
-        return state.replace(latent_stats=latent_moments(latents, data.valid))
-
-    def training_context(self, state: TrainState, traj: Trajectory, key: jax.Array | None = None) -> jax.Array:
-        """The θ-hat [T, B, L] the policy is cloned on along expert episodes ``traj``: ``model.policy_latent`` picks
-        the step of q_phi's posterior, ``model.policy_latent_draw`` its mean or a draw from it (``sample_latents``)."""
-        m = self.config.model
-        if m.policy_latent == "matched":
+    def training_context(self, state: TrainState, traj: Trajectory) -> jax.Array:
+        """The θ-hat [T, B, L] the policy is cloned on along expert episodes ``traj`` (``model.policy_latent``)."""
+        if self.config.model.policy_latent == "matched":
             return self.matched_latents(state, traj)
-        mean, logvar = self.posterior(state, traj)
-        picked = training_latents(mean, traj.valid, m.policy_latent, key)
-        if m.policy_latent_draw == "mean":
-            return picked
-        if key is None:
-            raise ValueError("training_context: policy_latent_draw='sample' draws a θ-hat per episode and needs a key")
-        std = jnp.exp(0.5 * training_latents(logvar, traj.valid, m.policy_latent, key))
-        return sample_latents(picked, std, jax.random.fold_in(key, 1))
+        return self.posterior_means(state, traj)
 
     def matched_latents(self, state: TrainState, traj: Trajectory) -> jax.Array:
         """θ-hat [T, B, L] for ``model.policy_latent=matched``: per expert episode, the posterior mean over the final
@@ -258,7 +206,7 @@ class Deconfounded(Algorithm):
         count = min(wanted, own.capacity) if wanted else own.capacity
         slots = jnp.arange(count) * own.capacity // count  # Evenly spaced over the buffer.
         data = jax.tree.map(lambda x: x[:, slots], own.data)
-        particles = training_latents(self.posterior_means(state, data), data.valid, "final")[0]
+        particles = final_latents(self.posterior_means(state, data), data.valid)
         filled = slots < own.size
         z = decoder_posterior_mean(self.dynamics_nll(state), particles, filled, traj.obs.imitator,
                                    action_features(self.space, traj.action), traj.valid)
@@ -278,23 +226,13 @@ class Deconfounded(Algorithm):
         _, _, policy = self.networks
         if context is None:
             context = self.training_context(state, traj)
-        return policy.apply(policy_params, traj.obs.imitator[: traj.horizon], self.as_policy_reads(state, context))
+        return policy.apply(policy_params, traj.obs.imitator[: traj.horizon], context)
 
 
-def training_latents(mean: jax.Array, valid: jax.Array, which: str, key: jax.Array | None = None) -> jax.Array:
-    """The θ-hat [T, B, L] the policy is cloned on from posterior means [T, B, L] along episodes with mask [T, B]:
-    ``"current"`` keeps each step's mean; ``"final"`` gives every step the mean at the episode's last valid step;
-    ``"random_step"`` gives every step the mean at one valid step of the episode drawn uniformly with ``key``, so the
-    policy learns the expert's action under beliefs of every sharpness the encoder produces, not only the sharpest
-    (``final``) or only the ones the expert's own progress pairs them with (``current``)."""
-    if which == "current":
-        return mean
-    if which == "random_step" and key is None:
-        raise ValueError("training_latents: policy_latent='random_step' draws a step per episode and needs a key")
+def final_latents(mean: jax.Array, valid: jax.Array) -> jax.Array:
+    """Each episode's posterior mean [B, L] at its last valid step, from means [T, B, L] and mask [T, B]."""
     last = jnp.maximum(jnp.sum(valid, axis=0) - 1, 0)
-    step = last if which == "final" else jax.random.randint(key, last.shape, 0, last + 1)
-    picked = jnp.take_along_axis(mean, step[None, :, None], axis=0)
-    return jnp.broadcast_to(picked, mean.shape)
+    return jnp.take_along_axis(mean, last[None, :, None], axis=0)[0]
 
 
 def decoder_posterior_mean(
@@ -315,16 +253,3 @@ def decoder_posterior_mean(
         return weights @ particles
 
     return jax.lax.map(one, jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1), (obs, feats, valid)))
-
-
-def sample_latents(mean: jax.Array, std: jax.Array, key: jax.Array) -> jax.Array:
-    """θ-hat = mean + std · ε [T, B, L] with one ε ~ N(0, I) per episode (axis 1), shared by the episode's steps: with
-    ``final`` latents it is one draw of θ-hat_H ~ q_phi(θ | τ) per episode, as in Algorithm 1."""
-    noise = jax.random.normal(key, (1, *mean.shape[1:]), mean.dtype)
-    return mean + std * noise
-
-
-def latent_moments(latents: jax.Array, valid: jax.Array, floor: float = 1e-2) -> tuple[jax.Array, jax.Array]:
-    """Per-dimension mean and standard deviation [L] of latents [T, B, L] over valid steps (``masked_moments``), floored
-    at ``floor`` so that a dimension the expert's θ-hats barely move is not blown up when standardised."""
-    return masked_moments(latents, valid, floor)

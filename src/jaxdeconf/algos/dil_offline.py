@@ -6,8 +6,8 @@ The imitator never acts in the environment during training: the only env steps a
 (collected as every algorithm collects them) and the evaluation. A synthetic episode is a ``lax.scan`` over p_psi
 alone: s_0 and the episode's length (its ``valid`` mask) from a stored expert episode, θ-tilde from the prior N(0, I)
 (or, ``offline.synthetic_latent=posterior``, from q_off on that expert episode), actions from a θ-independent Markov
-policy (``offline.explore``), next observations from p_psi (sampled for Bernoulli observations; the mean change plus
-``offline.dynamics_noise`` standard deviations for Gaussian ones).
+policy (``offline.explore``), next observations from p_psi (sampled for Bernoulli observations; the predicted mean
+change for Gaussian ones).
 """
 
 from __future__ import annotations
@@ -23,8 +23,36 @@ from flax import struct
 from jaxdeconf import losses
 from jaxdeconf.algos.base import Learner, TrainState, apply_gradients
 from jaxdeconf.algos.dil import Deconfounded
+from jaxdeconf.config import Config, field
 from jaxdeconf.data import buffer_indices
 from jaxdeconf.models import action_features, sample
+
+EXPLORERS = ("uniform", "policy")
+SYNTHETIC_LATENTS = ("prior", "posterior")
+
+
+@dataclasses.dataclass(frozen=True)
+class OfflineConfig:
+    """dil_offline (the paper's Algorithm 3): an offline VAE over expert episodes, and the online encoder q_on trained
+    on synthetic episodes of the VAE's dynamics model. Shared fields: a VAE step takes ``train.batch_size`` expert
+    episodes; q_off, p_psi and q_on learn at ``train.encoder_lr``, pi_eta at ``train.policy_lr``; q_on's ELBO uses
+    ``train.prediction_steps``; during ``train.warmup`` only the VAE trains."""
+
+    vae_steps: int = field(16, ">=1")  # Offline-ELBO (eq. 12) gradient steps per iteration: q_off, p_psi and pi_eta.
+    online_steps: int = field(16, ">=1")  # Online-ELBO (eq. 11) gradient steps of q_on per iteration.
+    synthetic_episodes: int = field(16, ">=1")  # Synthetic episodes rolled out through p_psi for each online step.
+    # The theta-independent Markov policy that acts in synthetic episodes: "uniform" (uniform over the arms, or over
+    # the box [-1, 1]^n) or "policy" (pi_eta on a second latent drawn from the prior, independent of the episode's:
+    # states like the imitator's own, where uniform actions would leave the expert's region).
+    explore: str = field("uniform", EXPLORERS)
+    # Where a synthetic episode's θ-tilde comes from: "posterior" (a sample of q_off on the expert episode that gave
+    # s_0: the latents p_psi and pi_eta were trained on) or "prior" (N(0, I), the paper's Algorithm 3, whose draws
+    # also land between q_off's clusters; docs/ablations.md).
+    synthetic_latent: str = field("posterior", SYNTHETIC_LATENTS)
+    beta: float = field(1.0, ">=0")  # KL weight of the offline ELBO (eq. 12), against N(0, I).
+    # KL weight of q_on's sequential ELBO (eq. 11) on synthetic episodes: 1 makes q_on the variational posterior under
+    # the prior and p_psi.
+    online_beta: float = field(1.0, ">=0")
 
 
 @struct.dataclass
@@ -45,6 +73,18 @@ class DeconfoundedOffline(Deconfounded):
     ``state.encoder`` holds params {"encoder": q_on, "decoder": p_psi, "offline": q_off} and opt_state {"encoder":
     q_on's, "model": that of {"decoder", "offline"}}, so that q_on's steps leave the VAE's parameters and moments alone.
     """
+
+    settings = ("offline", OfflineConfig)
+
+    @classmethod
+    def stored_episodes(cls, config: Config) -> int:
+        """The expert buffer alone: the imitator stores no episodes of its own."""
+        return config.train.buffer_episodes
+
+    @classmethod
+    def episodes_in_flight(cls, config: Config) -> int:
+        """Besides the shared batches, the synthetic episodes rolled out through p_psi."""
+        return max(super().episodes_in_flight(config), config.offline.synthetic_episodes)
 
     def init(self, key: jax.Array) -> TrainState:
         """Fresh q_on, q_off, p_psi and pi_eta; an expert buffer and no buffer of own episodes."""
@@ -85,8 +125,8 @@ class DeconfoundedOffline(Deconfounded):
         """s_{t+1} [B, d] from p_psi's output at s_t: a Bernoulli sample, or the predicted (standardised) change."""
         if self.env.obs_likelihood == "bernoulli":
             return jax.random.bernoulli(key, jax.nn.sigmoid(out)).astype(jnp.float32)
-        noise = self.config.offline.dynamics_noise * jax.random.normal(key, out.shape)
-        return obs + (out + noise) * self.delta_scale
+        del key  # Unused: the Gaussian dynamics' next observation is the mean.
+        return obs + out * self.delta_scale
 
     def synthetic_rollout(self, state: TrainState, key: jax.Array) -> SyntheticBatch:
         """``offline.synthetic_episodes`` episodes of p_psi under θ-tilde ~ N(0, I): one ``lax.scan`` over the model,

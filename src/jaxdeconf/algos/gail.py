@@ -2,7 +2,7 @@
 
 The generator is a GRU actor and a GRU critic, each on the imitator's view and the previous action (bc's network).
 Each iteration it rolls out ``gail.rollout_factor`` times the other algorithms' episodes; the discriminator (an MLP on
-s', or on (s, a, s') with ``gail.disc_input=transition``) takes ``gail.disc_steps`` BCE steps separating expert from
+s', the reference code's input) takes ``gail.disc_steps`` BCE steps separating expert from
 generator transitions; the generator's reward is -log(1 - D) = softplus(logit); then PPO (clipped surrogate, GAE,
 normalised advantages) runs ``gail.epochs`` epochs over minibatches of whole episodes. Recurrent PPO replays each
 episode from its first step with a zero GRU state, exactly as it was rolled out, so before the first update the
@@ -21,17 +21,49 @@ import optax
 from jaxdeconf import losses
 from jaxdeconf.actors import RecurrentActor
 from jaxdeconf.algos.base import Algorithm, Learner, TrainState, apply_gradients
+from jaxdeconf.config import Config, field
 from jaxdeconf.data import Tagged, Trajectory, buffer_add, buffer_sample, rollout_with_outputs
+from jaxdeconf.errors import ConfigError
 from jaxdeconf.models import Discriminator, RecurrentPolicy, action_features, entropy, head_size, log_prob
 from jaxdeconf.ppo import clipped_surrogate, gae, normalize_advantages, squared_value_error
 
+GAIL_REWARDS = ("discriminator", "env")
 
-def discriminator_features(traj: Trajectory, space: Any, kind: str) -> jax.Array:
-    """What the discriminator reads at each step [T, B, f]: s' ("next") or (s, a, s') ("transition")."""
-    obs = traj.obs.imitator
-    if kind == "next":
-        return obs[1:]
-    return jnp.concatenate([obs[:-1], action_features(space, traj.action), obs[1:]], axis=-1)
+
+@dataclasses.dataclass(frozen=True)
+class GailConfig:
+    """GAIL: the recurrent PPO generator and the discriminator (defaults: the reference code's constants)."""
+
+    rollout_factor: int = field(4, ">=1")  # Generator episodes per iteration, in units of train.episodes_per_iter.
+    disc_steps: int = field(20, ">=1")  # Discriminator gradient steps per iteration.
+    disc_lr: float = field(3e-4, ">0")  # Discriminator Adam learning rate.
+    # The generator's reward: "discriminator" (-log(1 - D)) or "env" (the env's own reward: a check that the same PPO
+    # learns the task at this budget, separating a weak generator from a weak discriminator).
+    reward: str = field("discriminator", GAIL_REWARDS)
+    lr: float = field(3e-4, ">0")  # Generator (actor and critic) Adam learning rate.
+    epochs: int = field(10, ">=1")  # PPO epochs over each iteration's rollouts.
+    minibatches: int = field(4, ">=1")  # Minibatches per epoch, each of whole episodes.
+    clip_eps: float = field(0.2, ">0")  # PPO's probability-ratio clip.
+    gamma: float = field(0.99, ">=0")  # Discount (at most 1).
+    gae_lambda: float = field(0.95, ">=0")  # GAE's lambda (at most 1).
+    max_grad_norm: float = field(0.5, ">0")  # Global-norm gradient clip of the generator.
+    value_coef: float = field(0.5, ">=0")  # Weight of the critic's squared error in the generator's loss.
+    entropy_coef: float = field(0.0, ">=0")  # Weight of the policy's entropy bonus.
+
+    def check(self, config: Config) -> None:
+        """Raise ConfigError for relations no single field's range states."""
+        for name in ("gamma", "gae_lambda"):
+            if getattr(self, name) > 1:
+                raise ConfigError(f"gail.{name}={getattr(self, name)} is not allowed: need a number in [0, 1]")
+        episodes = config.train.episodes_per_iter * self.rollout_factor
+        if episodes % self.minibatches:
+            raise ConfigError(f"gail.minibatches={self.minibatches} must divide the generator's {episodes} episodes "
+                              "per iteration (train.episodes_per_iter x gail.rollout_factor)")
+
+
+def discriminator_features(traj: Trajectory) -> jax.Array:
+    """What the discriminator reads at each step [T, B, d]: the next observation s'."""
+    return traj.obs.imitator[1:]
 
 
 def discriminator_loss(
@@ -59,6 +91,18 @@ def next_step_values(values: jax.Array, valid: jax.Array) -> tuple[jax.Array, ja
 @dataclasses.dataclass(frozen=True)
 class GAIL(Algorithm):
     """Adversarial imitation: the generator never sees the expert's actions, only the discriminator's reward."""
+
+    settings = ("gail", GailConfig)
+
+    @classmethod
+    def stored_episodes(cls, config: Config) -> int:
+        """The expert buffer and one iteration of generator rollouts."""
+        return config.train.buffer_episodes + config.gail.rollout_factor * config.train.episodes_per_iter
+
+    @classmethod
+    def episodes_in_flight(cls, config: Config) -> int:
+        """The generator's rollouts are the largest batch."""
+        return max(super().episodes_in_flight(config), config.gail.rollout_factor * config.train.episodes_per_iter)
 
     @property
     def networks(self) -> tuple[RecurrentPolicy, RecurrentPolicy, Discriminator]:
@@ -103,8 +147,8 @@ class GAIL(Algorithm):
         )
 
     def disc_features(self, traj: Trajectory) -> jax.Array:
-        """``discriminator_features`` with this config's input."""
-        return discriminator_features(traj, self.space, self.config.gail.disc_input)
+        """``discriminator_features`` of ``traj``."""
+        return discriminator_features(traj)
 
     def actor(self) -> RecurrentActor:
         """The GRU actor on the imitator's view."""
