@@ -11,6 +11,7 @@ a plain matmul's (``bench_scale.py``), and seconds per iteration of every algori
 
 from __future__ import annotations
 
+import argparse
 import resource
 import subprocess
 import sys
@@ -20,8 +21,9 @@ import time
 import bench_scale
 import jax
 
-from jaxdeconf.config import ALGOS, build
-from jaxdeconf.run import available_cores, pin_to_core
+from jaxdeconf.algos import names
+from jaxdeconf.platform import available_cores, pin_to_core
+from jaxdeconf.resolve import build
 from jaxdeconf.train import build_algorithm, compiled_chunk, seed_keys
 
 # The authors' PyTorch code on this same 2-core machine (from the issue): seconds per iteration.
@@ -86,7 +88,7 @@ def main(sections: list[str]) -> None:
     if "algos" in sections:
         print("\n## Every algorithm at each env's CPU preset: seconds per iteration (after warm-up), 1 seed")
         for env in ("bandit", "lunar_lander", "half_cheetah", "ant_goal"):
-            for name in ALGOS:
+            for name in names():
                 c, s = time_iterations(name, "cpu", 1, 2, {}, env=env)
                 print(f"{env:13s} {name:7s}: {s:7.3f} s/iteration (compile {c:.1f} s)", flush=True)
 
@@ -212,13 +214,20 @@ def _brax_one(name: str, n: int) -> None:
 
 SECTIONS = ("seeds", "e2e", "efficiency", "profile", "reference", "algos", "lunar", "brax")
 
-if __name__ == "__main__":
-    if sys.argv[1:2] == ["_brax_one"]:
-        _brax_one(sys.argv[2], int(sys.argv[3]))
-        sys.exit(0)
-    chosen = sys.argv[1:] or list(SECTIONS)
+def parse_args(argv: list[str] | None = None) -> list[str]:
+    """The sections to run (all when none is named); exit code 2 with one line for an unknown one."""
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "),
+                                     epilog=f"sections: {', '.join(SECTIONS)}")
+    parser.add_argument("sections", nargs="*", help="sections to run (default: all)")
+    chosen = parser.parse_args(argv).sections or list(SECTIONS)
     unknown = [name for name in chosen if name not in SECTIONS]
     if unknown:
-        print(f"error: unknown bench section {unknown[0]!r}; allowed: {', '.join(SECTIONS)}", file=sys.stderr)
-        sys.exit(2)
-    main(chosen)
+        parser.exit(2, f"error: unknown bench section {unknown[0]!r}; allowed: {', '.join(SECTIONS)}\n")
+    return chosen
+
+
+if __name__ == "__main__":
+    if sys.argv[1:2] == ["_brax_one"]:  # One Brax env's measurement in a fresh process (see ``brax``).
+        _brax_one(sys.argv[2], int(sys.argv[3]))
+        sys.exit(0)
+    main(parse_args())

@@ -7,6 +7,7 @@ Each device count runs in its own process (a process's CPU device count is fixed
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 import time
@@ -20,7 +21,7 @@ def seeds_and_devices() -> None:
     print(f"\n## bandit CPU preset, dil: seconds per iteration ({ITERS}-iteration chunk, after its compile) versus")
     print("##  seeds; one device, and the seed axis split over 2 host devices (--host-devices 2); a process, unpinned")
     for devices in (1, 2):
-        proc = subprocess.run([sys.executable, __file__, str(devices)], capture_output=True, text=True,
+        proc = subprocess.run([sys.executable, __file__, "--devices", str(devices)], capture_output=True, text=True,
                               timeout=1800, check=False)
         rows = [line for line in proc.stdout.splitlines() if line.startswith("devices=")]
         print("\n".join(rows) if rows else f"devices={devices}: failed (exit {proc.returncode}) "
@@ -32,7 +33,7 @@ def devices_one(devices: int) -> None:
     import jax
 
     jax.config.update("jax_num_cpu_devices", devices)
-    from jaxdeconf.config import build
+    from jaxdeconf.resolve import build
     from jaxdeconf.sharding import seed_layout
     from jaxdeconf.train import build_algorithm, compiled_chunk, initial_states
 
@@ -86,7 +87,7 @@ def profile(seeds: int = 10) -> None:
     buffer once), and one evaluation."""
     import jax
 
-    from jaxdeconf.config import build
+    from jaxdeconf.resolve import build
     from jaxdeconf.train import build_algorithm
 
     print(f"\n## Default job, bandit CPU preset, {seeds} seeds vmapped: milliseconds per part of an iteration")
@@ -124,4 +125,11 @@ def _best(fn: object, *args: object, reps: int = 20) -> float:
 
 
 if __name__ == "__main__":  # One process of ``seeds_and_devices`` (nothing may start JAX before the device count).
-    devices_one(int(sys.argv[1]))
+    parser = argparse.ArgumentParser(description="One process of `make bench`'s seeds section: dil's seconds per "
+                                     "iteration at the bandit CPU preset for 1, 2, 4 and 8 seeds with the CPU shown "
+                                     "as N devices; run by bench.py, once per device count.")
+    parser.add_argument("--devices", type=int, required=True, help="CPU devices (the seed axis is split over them)")
+    args = parser.parse_args()
+    if args.devices < 1:
+        parser.exit(2, f"error: --devices={args.devices} is not allowed: need a positive integer\n")
+    devices_one(args.devices)

@@ -30,7 +30,7 @@ from jaxdeconf.envs import make
 
 from jaxdeconf.brax_experts import ExpertView, PolicyExpert, network_factory, policy_template, wrap_resampling
 from jaxdeconf.experts import expert_paths, load_expert, save_expert
-from jaxdeconf.run import available_cores, pin_to_core
+from jaxdeconf.platform import available_cores, pin_to_core
 
 ENVS = ("half_cheetah", "ant_goal")
 
@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--overwrite", action="store_true")
     parser.add_argument("--evaluate", action="store_true", help="only re-evaluate the shipped expert")
     args = parser.parse_args(argv)
-    pin_to_core(available_cores()[0])  # One core per process; see jaxdeconf.run.pin_to_core.
+    pin_to_core(available_cores()[0])  # One core per process; see jaxdeconf.platform.pin_to_core.
     if args.evaluate:
         return evaluate_shipped(args.env)
     weights, _ = expert_paths(args.env, args.out)

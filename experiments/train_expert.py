@@ -19,8 +19,8 @@ import numpy as np
 from jaxdeconf.envs import make
 
 from jaxdeconf.experts import expert_paths, save_expert
+from jaxdeconf.platform import available_cores, pin_to_core
 from jaxdeconf.ppo import ExpertNetwork, PPOConfig, train_ppo
-from jaxdeconf.run import available_cores, pin_to_core
 
 
 def make_evaluator(env, net, episodes: int = 100):
@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--evaluate", action="store_true",
                         help="only re-evaluate the shipped expert (and a θ-blind copy of it); write nothing")
     args = parser.parse_args(argv)
-    pin_to_core(available_cores()[0])  # See jaxdeconf.run.pin_to_core.
+    pin_to_core(available_cores()[0])  # See jaxdeconf.platform.pin_to_core.
     if args.evaluate:
         return evaluate_shipped(args.env)
     weights, _ = expert_paths(args.env, args.out)

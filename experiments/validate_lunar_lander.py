@@ -23,7 +23,7 @@ import numpy as np
 from jaxdeconf.envs import make
 from jaxdeconf.envs.lunar_lander import heuristic
 
-from jaxdeconf.run import available_cores, pin_to_core
+from jaxdeconf.platform import available_cores, pin_to_core
 
 HORIZON = 500
 
@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     if (args.out / "validation.json").exists() and not args.overwrite:
         print(f"error: {args.out / 'validation.json'} exists; pass --overwrite to replace it", file=sys.stderr)
         return 2
-    pin_to_core(available_cores()[0])  # See jaxdeconf.run.pin_to_core.
+    pin_to_core(available_cores()[0])  # See jaxdeconf.platform.pin_to_core.
     rows = {}
     for controller, random_actions in (("heuristic", False), ("random actions", True)):
         rows[f"ours (JAX), {controller}"] = summarize(run_jax(args.episodes, args.seed, random_actions))

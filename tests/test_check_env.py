@@ -91,7 +91,8 @@ def test_env_from_user_module_by_name(tmp_path, monkeypatch):
     assert type(env).__name__ == "SmallBandit" and params.horizon == 10
     config = build("my_envs:SmallBandit", "cpu", ("bc",), 1, {})
     assert config.train.iterations == 7 and config.env == "my_envs:SmallBandit"
-    assert build("my_envs:SmallBandit", "paper", ("bc",), 1, {}).model.gru == 500  # The generic presets remain.
+    with pytest.raises(ConfigError, match=r"unknown preset 'paper' for env 'my_envs:SmallBandit'; allowed: cpu$"):
+        build("my_envs:SmallBandit", "paper", ("bc",), 1, {})  # Its own presets only, never another env's.
     register("small_bandit", Bandit)
     assert resolve("small_bandit") is Bandit
 
