@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import TINY
+from conftest import CARTPOLE, TINY
 from jaxdeconf.envs.bandit import Bandit
 
 from jaxdeconf import losses
@@ -193,6 +193,35 @@ def test_synthetic_latents_from_the_prior_or_from_q_off():
     np.testing.assert_array_equal(draw, np.asarray(jax.random.normal(key, (3, latent))))
     np.testing.assert_allclose(np.asarray(posterior.synthetic_latents(state, episodes, key)),
                                mean + np.exp(0.5 * logvar) * draw, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.timeout(300)
+def test_offline_elbo_scores_p_psi_as_q_on_elbo_does():
+    """p_psi is trained with the likelihood q_on's ELBO reads it with (``decoder_scoring``, one definition for both).
+    On the cart-pole (one Gaussian group of 4 dimensions) ``decoder_weighting=group_mean`` averages the group's NLL
+    where ``sum`` adds it, so with the same parameters, batch and key the offline ELBO's dynamics NLL is exactly a
+    quarter (on a loss that summed every dimension whatever the setting, both would be equal)."""
+    out = {}
+    for weighting in ("sum", "group_mean"):
+        config = build(CARTPOLE, "cpu", ("dil_offline",), 1, {**TINY, "model.decoder_weighting": weighting})
+        algo = make_algorithm("dil_offline", *_cartpole(), config)
+        state = algo.init(jax.random.key(0))
+        state, _ = algo.collect_expert(state, jax.random.key(1))
+        data = state.expert_buffer.data
+        params = {**state.encoder.params, "policy": state.policy.params}
+        _, metrics = algo.offline_elbo_fn(params, data.obs.imitator, data.action, data.valid, jax.random.key(2))
+        out[weighting] = float(metrics["vae_dynamics_nll"])
+        scoring = ("likelihood", "delta_scale", "groups", "weighting")
+        online, offline = algo.elbo_fn.keywords, algo.offline_elbo_fn.keywords
+        assert all(online[k] is offline[k] or online[k] == offline[k] for k in scoring)
+    assert out["group_mean"] == pytest.approx(out["sum"] / 4, rel=1e-5)
+
+
+def _cartpole():
+    """The cart-pole example env and its default params."""
+    from jaxdeconf.envs import make
+
+    return make(CARTPOLE)
 
 
 def test_saved_configs_read_back_and_a_removed_setting_is_named():

@@ -258,6 +258,8 @@ def offline_elbo_loss(
     likelihood: str,
     delta_scale: jax.Array | None = None,
     encoder_delta_scale: jax.Array | None = None,
+    groups: tuple[Any, ...] | None = None,
+    weighting: str = "sum",
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Negative offline ELBO (the paper's eq. 12) of whole expert episodes, per episode and divided by T.
 
@@ -266,14 +268,17 @@ def offline_elbo_loss(
     gives one θ-tilde per episode, sampled by reparameterisation and shared by every step. Per episode the loss is
     sum over valid t of [-log p_psi(s_{t+1} | s_t, a_t, θ-tilde) - log pi_eta(a_t | s_t, θ-tilde)]
     + beta KL(q_off || N(0, I)); the batch mean of that is divided by the constant T, so that gradient sizes do not
-    grow with the horizon. ``delta_scale`` and ``encoder_delta_scale``: as in ``elbo_loss``.
+    grow with the horizon. ``likelihood``, ``delta_scale``, ``groups`` and ``weighting`` score p_psi exactly as
+    ``elbo_loss`` does (``prediction_nll``), so q_on's ELBO reads the frozen p_psi with the likelihood it was trained
+    with; ``encoder_delta_scale``: as in ``elbo_loss``.
     """
     T = valid.shape[0]
     feats = action_features(space, action)
     mean, logvar = episode_posterior(encoder, params["offline"], obs, feats, valid, encoder_delta_scale)
     z = mean + jnp.exp(0.5 * logvar) * jax.random.normal(key, mean.shape)
     z_t = jnp.broadcast_to(z, (T, *z.shape))
-    dynamics_nll, _ = prediction_nll(decoder, params["decoder"], z_t, obs, feats, valid, 1, likelihood, delta_scale)
+    dynamics_nll, _ = prediction_nll(decoder, params["decoder"], z_t, obs, feats, valid, 1, likelihood, delta_scale,
+                                     groups, weighting)
     policy_nll = -log_prob(space, policy.apply(params["policy"], obs[:T], z_t), action) * valid
     kl = kl_diag_gaussian(mean, logvar, jnp.zeros_like(mean), jnp.zeros_like(logvar))
     per_episode = jnp.sum(dynamics_nll + policy_nll, axis=0) + beta * kl

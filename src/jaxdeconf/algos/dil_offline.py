@@ -189,22 +189,20 @@ class DeconfoundedOffline(Deconfounded):
                           {**state.encoder.opt_state, "encoder": online.opt_state})
         return state.replace(encoder=learner), jax.tree.map(jnp.mean, metrics)
 
+    @property
+    def offline_elbo_fn(self) -> Any:
+        """``losses.offline_elbo_loss`` bound to the networks and to ``decoder_scoring``, the scoring q_on's ELBO
+        (``elbo_fn``) reads the same p_psi with: one definition for both."""
+        encoder, decoder, policy = self.networks
+        return functools.partial(losses.offline_elbo_loss, encoder=encoder, decoder=decoder, policy=policy,
+                                 space=self.space, beta=self.config.offline.beta,
+                                 encoder_delta_scale=self.encoder_scale, **self.decoder_scoring)
+
     def update_policy(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
         """``offline.vae_steps`` steps of the offline ELBO (eq. 12) on batches of whole expert episodes, training
         q_off, p_psi and pi_eta together: the policy is the VAE's action decoder."""
         t = self.config.train
-        encoder, decoder, policy = self.networks
-        loss_fn = functools.partial(
-            losses.offline_elbo_loss,
-            encoder=encoder,
-            decoder=decoder,
-            policy=policy,
-            space=self.space,
-            beta=self.config.offline.beta,
-            likelihood=self.env.obs_likelihood,
-            delta_scale=self.delta_scale,
-            encoder_delta_scale=self.encoder_scale,
-        )
+        loss_fn = self.offline_elbo_fn
 
         def vae_loss(model: Any, policy_params: Any, batch: Any, noise_key: jax.Array) -> tuple[jax.Array, dict]:
             return loss_fn({**model, "policy": policy_params}, batch.obs.imitator, batch.action, batch.valid,
