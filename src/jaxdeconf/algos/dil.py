@@ -164,17 +164,13 @@ class Deconfounded(Algorithm):
         learner, metrics = jax.lax.scan(step, state.encoder, jax.random.split(key, t.encoder_steps))
         return state.replace(encoder=learner), jax.tree.map(jnp.mean, metrics)
 
-    def posterior(self, state: TrainState, traj: Trajectory) -> tuple[jax.Array, jax.Array]:
-        """Posterior means and log-variances [T, B, L] of q_phi along ``traj``, detached: the policy never trains the
-        encoder."""
+    def posterior_means(self, state: TrainState, traj: Trajectory) -> jax.Array:
+        """Posterior means [T, B, L] of q_phi along ``traj``, detached: the policy never trains the encoder."""
         encoder, _, _ = self.networks
         obs = self.encoder_obs(traj.obs.imitator[: traj.horizon])
         prev = losses.prev_actions(action_features(self.space, traj.action))
-        return jax.lax.stop_gradient(losses.encoder_scan(encoder, state.encoder.params["encoder"], obs, prev))
-
-    def posterior_means(self, state: TrainState, traj: Trajectory) -> jax.Array:
-        """Posterior means [T, B, L] of q_phi along ``traj``, detached."""
-        return self.posterior(state, traj)[0]
+        mean, _ = losses.encoder_scan(encoder, state.encoder.params["encoder"], obs, prev)
+        return jax.lax.stop_gradient(mean)
 
     def belief(self, state: TrainState, traj: Trajectory) -> jax.Array:
         """q_phi's posterior means along ``traj``."""
