@@ -62,6 +62,7 @@ BAD_INPUTS = [
     (["--set", "train.iterations=-3"], "train.iterations=-3 is not allowed: need a positive integer"),
     (["--set", f"train.iterations={10**12}"], "train.iterations=1000000000000 is too large: need at most 2147483647"),
     (["--set", "train.chunk=0"], "train.chunk=0 is not allowed"),
+    (["--set", "train.chunk=1000000"], "train.chunk=1000000 is not allowed: need at most train.iterations=300"),
     (["--set", "train.warmup=-1"], "train.warmup=-1 is not allowed: need an integer >= 0"),
     (["--set", "train.warmup=300"], "train.warmup=300 is not allowed: need 0 <= warmup < train.iterations"),
     (["--set", "train.batch_size=64"], "train.batch_size=64 exceeds train.buffer_episodes=32"),

@@ -181,3 +181,11 @@ def test_saved_config_lists_every_registered_section():
     """A results folder's config.json holds the algorithm-owned sections beside model and train."""
     saved = json.loads(json.dumps(build("bandit", "cpu", ("bc",), 1, {}).to_dict()))
     assert {"model", "train", *algos.settings_sections()} <= set(saved)
+
+
+def test_a_shorter_run_than_the_presets_chunk_gets_one_chunk_and_a_set_chunk_is_checked():
+    """A preset's chunk follows a shorter ``train.iterations``; a chunk the user sets past the run is refused."""
+    assert build("bandit", "cpu", ("bc",), 1, {"train.iterations": "21"}).train.chunk == 21
+    assert build("bandit", "cpu", ("bc",), 1, {"train.iterations": "200"}).train.chunk == 25
+    with pytest.raises(ConfigError, match=r"train.chunk=30 is not allowed: need at most train.iterations=21"):
+        build("bandit", "cpu", ("bc",), 1, {"train.iterations": "21", "train.chunk": "30"})

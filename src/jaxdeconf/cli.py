@@ -37,6 +37,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--jobs", type=int, default=0,
                    help="algorithms trained at once, each in its own process "
                         "(default: one per algorithm, at most one per available core)")
+    p.add_argument("--no-pin", action="store_true",
+                   help="leave side-by-side algorithms unpinned (default: each on its own core(s) when they fit)")
     p.add_argument("--host-devices", type=int, default=1,
                    help="split this machine's CPU into N devices and the seeds over them (default: 1)")
     p.add_argument("--coordinator", default=None, metavar="HOST:PORT",
@@ -46,6 +48,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--process-id", type=int, default=None, help="multi-host run: this process's rank")
     p.add_argument("--worker", default=None, help=argparse.SUPPRESS)  # Internal: train one algorithm of --out.
     p.add_argument("--position", type=int, default=0, help=argparse.SUPPRESS)  # Internal: its progress-bar row.
+    p.add_argument("--cores", default="", help=argparse.SUPPRESS)  # Internal: the cores it is pinned to.
     return p.parse_args(argv)
 
 

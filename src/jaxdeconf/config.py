@@ -232,6 +232,9 @@ def validate(config: Config) -> None:
     t = config.train
     if t.warmup >= t.iterations:
         raise ConfigError(f"train.warmup={t.warmup} is not allowed: need 0 <= warmup < train.iterations")
+    if t.chunk > t.iterations:
+        raise ConfigError(f"train.chunk={t.chunk} is not allowed: need at most train.iterations={t.iterations} "
+                          "(progress, metrics and checkpoints come once per chunk)")
     if t.batch_size > t.buffer_episodes:
         raise ConfigError(f"train.batch_size={t.batch_size} exceeds train.buffer_episodes={t.buffer_episodes}: "
                           "a batch must fit in the buffer")

@@ -67,9 +67,27 @@ def join(args: dict[str, Any], timeout_s: int = 300) -> None:
 
 def pin_to_core(core: int) -> None:
     """Run this process on one CPU core (Linux; elsewhere a no-op), before JAX starts its backend: for measurements
-    of one core's speed, and test processes that share a machine. Training processes are not pinned."""
+    of one core's speed, and test processes that share a machine."""
+    pin_to_cores([core])
+
+
+def pin_to_cores(cores: list[int]) -> None:
+    """Run this process on these CPU cores (Linux; elsewhere a no-op), before JAX starts its backend, so XLA sizes
+    its thread pool to them."""
     if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {core})
+        os.sched_setaffinity(0, set(cores))
+
+
+def worker_cores(slot: int, jobs: int, host_devices: int) -> list[int] | None:
+    """The cores of side-by-side worker ``slot``: its own ``host_devices`` of the available cores when ``jobs`` such
+    workers fit them, else None (unpinned, every worker on every core).
+
+    Pinned, each worker's XLA thread pool is sized to its own cores and never competes with the other workers' for
+    them; unpinned, two workers on two cores each run a two-thread pool on both cores, and the default job trained
+    markedly slower (docs/scale.md, "Where the default job's time goes")."""
+    if jobs * host_devices > len(_CORES):
+        return None
+    return _CORES[slot * host_devices:(slot + 1) * host_devices]
 
 
 # The cores this process was allowed when it started (before any pinning of its own).

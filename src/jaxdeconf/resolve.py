@@ -54,6 +54,9 @@ def build(env: str, preset: str, algorithms: tuple[str, ...], seeds: int, overri
         raise ConfigError(f"unknown preset {preset!r} for env {env!r}; allowed: {', '.join(presets)}")
     config = cfg.apply_overrides(default_config(env, algorithms, seeds), presets[preset])
     config = cfg.apply_overrides(config, overrides)
+    if "train.chunk" not in overrides and config.train.chunk > config.train.iterations:
+        # A shorter run than the preset's: its chunk follows (a chunk the user sets stays theirs to get right).
+        config = cfg.apply_overrides(config, {"train.chunk": config.train.iterations})
     cfg.validate(config)
     return config
 

@@ -36,7 +36,8 @@ def main(argv: list[str] | None = None) -> int:
             config, folder = _setup(args)
             lock = prepare_folder(folder, config, args.overwrite)
             try:
-                return _run(config, folder, quiet=args.quiet, jobs=args.jobs, host_devices=args.host_devices)
+                return _run(config, folder, quiet=args.quiet, jobs=args.jobs, host_devices=args.host_devices,
+                            pin=not args.no_pin)
             finally:
                 lock.release()
     except ConfigError as err:
@@ -67,7 +68,8 @@ def _setup(args: argparse.Namespace) -> tuple[cfg.Config, pathlib.Path]:
     return config, pathlib.Path(args.out or f"results/{config.env.rpartition(':')[2]}-{args.preset}")
 
 
-def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0, host_devices: int = 1) -> int:
+def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0, host_devices: int = 1,
+         pin: bool = True) -> int:
     """Train every algorithm not yet finished (side by side, a process each), then write references, summary and
     figures."""
     from jaxdeconf.platform import available_cores
@@ -75,7 +77,7 @@ def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0, h
     check_writable(folder, config.algos)
     queue = [algo for algo in config.algos if not finished(config, folder, algo)]  # Damaged files: before any work.
     refs = cached_references(config, folder)
-    codes = train_workers(folder, queue, jobs or len(available_cores()), quiet, host_devices)
+    codes = train_workers(folder, queue, jobs or len(available_cores()), quiet, host_devices, pin)
     if 2 in codes.values():
         return 2  # A worker already printed its one-line error.
     failed = [f"{algo} (exit {code})" for algo, code in codes.items() if code != 0]

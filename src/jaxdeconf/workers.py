@@ -21,14 +21,17 @@ from jaxdeconf import resolve
 from jaxdeconf.errors import ConfigError
 from jaxdeconf.files import FolderLock, command_line, writable
 from jaxdeconf.folders import finished
+from jaxdeconf.platform import worker_cores
 from jaxdeconf.processes import stop_processes
 
 
 def run_worker(args: argparse.Namespace) -> int:
     """Internal entry point: train one algorithm of an already prepared results folder."""
     _die_with_parent()
-    from jaxdeconf.platform import set_host_devices
+    from jaxdeconf.platform import pin_to_cores, set_host_devices
 
+    if args.cores:
+        pin_to_cores([int(c) for c in args.cores.split(",")])
     set_host_devices(args.host_devices)
     import logging
 
@@ -69,20 +72,21 @@ def _die_with_parent() -> None:
 
 
 def train_workers(folder: pathlib.Path, queue: list[str], jobs: int, quiet: bool,
-                  host_devices: int) -> dict[str, int]:
-    """Train the queued algorithms in worker processes, ``jobs`` at a time; a freed slot takes the next algorithm at
-    once. Returns each algorithm's exit code."""
+                  host_devices: int, pin: bool = True) -> dict[str, int]:
+    """Train the queued algorithms in worker processes, ``jobs`` at a time, each slot pinned to its own cores when
+    ``pin`` and they fit (``platform.worker_cores``); a freed slot takes the next algorithm at once. Returns each
+    algorithm's exit code."""
     codes: dict[str, int] = {}
     running: dict[int, tuple[str, subprocess.Popen]] = {}  # Slot (a progress-bar row) -> worker.
     queue = list(queue)
     try:
-        _schedule(folder, queue, jobs, quiet, host_devices, running, codes)
+        _schedule(folder, queue, jobs, quiet, host_devices, pin, running, codes)
     finally:  # Normally nothing is left; on SIGTERM or Ctrl-C, the workers stop with the run.
         stop_processes(proc for _, proc in running.values())
     return codes
 
 
-def _schedule(folder: pathlib.Path, queue: list[str], jobs: int, quiet: bool, host_devices: int,
+def _schedule(folder: pathlib.Path, queue: list[str], jobs: int, quiet: bool, host_devices: int, pin: bool,
               running: dict[int, tuple[str, subprocess.Popen]], codes: dict[str, int]) -> None:
     """Start a worker in each free slot until the queue is empty, collecting exit codes."""
     while queue or running:
@@ -91,6 +95,8 @@ def _schedule(folder: pathlib.Path, queue: list[str], jobs: int, quiet: bool, ho
                 algo = queue.pop(0)
                 cmd = [sys.executable, "-m", "jaxdeconf.run", "--worker", algo, "--out", str(folder),
                        "--position", str(slot), "--host-devices", str(host_devices)]
+                cores = worker_cores(slot, jobs, host_devices) if pin else None
+                cmd += ["--cores", ",".join(map(str, cores))] if cores else []
                 running[slot] = (algo, subprocess.Popen([*cmd, "--quiet"] if quiet else cmd))
         finished_slots = [slot for slot, (_, proc) in running.items() if proc.poll() is not None]
         if not finished_slots:
