@@ -259,8 +259,15 @@ def test_run_then_protect_results(tmp_path, capfd):
     _bad(capfd, [*argv, "--set", "train.iterations=6"], "holds a different config (train.iterations: 4 there, 6 now)")
     assert _snapshot(folder) == after
 
-    # A corrupt checkpoint is reported in one line and left in place.
+    # A truncated checkpoint (half its largest array file) and a corrupt one are each reported in one line and left
+    # in place (the truncated one's abandoned reads once printed a traceback per array as the worker shut down).
     (folder / "dil" / "DONE").unlink()
+    for step in (folder / "dil" / "checkpoints").iterdir():
+        largest = max((p for p in step.rglob("*") if p.is_file()), key=lambda p: p.stat().st_size)
+        largest.write_bytes(largest.read_bytes()[: largest.stat().st_size // 2])
+    damaged = _snapshot(folder)
+    _bad(capfd, argv, "is unreadable")
+    assert _snapshot(folder) == damaged
     for p in (folder / "dil" / "checkpoints").rglob("*"):
         if p.is_file() and p.stat().st_size > 0:
             p.write_bytes(b"garbage")

@@ -55,7 +55,11 @@ def run_worker(args: argparse.Namespace) -> int:
             lock.release()
     except ConfigError as err:  # E.g. an unreadable checkpoint: one line, and the parent adds none.
         print(f"error: {err}", file=sys.stderr, flush=True)
-        return 2
+        sys.stdout.flush()
+        # Leave at once: a damaged checkpoint can leave orbax's reads in flight, whose callbacks, run against the
+        # closed event loop while Python shuts down, print a traceback each. Nothing is left to write; the OS
+        # releases the folder's lock.
+        os._exit(2)
     print(f"[{args.worker}] compile {timing['compile_s']:.1f} s, run {timing['run_s']:.1f} s", flush=True)
     return 0
 
