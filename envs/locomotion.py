@@ -319,8 +319,9 @@ class AntGoalParams:
 
     goal_radius: float = 10.0
     # Std of the noise on the imitator's (distance, bearing). At 1.0 one reading gives the bearing only to about a
-    # radian, so the direction cannot be inferred from a single observation (the paper's regime) and naive BC is
-    # confounded; the reference code's 0.1 gives it to 6°, and there all imitators nearly match the oracle.
+    # radian, so the direction cannot be inferred from a single observation (what the paper's text says of its ant)
+    # and naive BC is confounded. The paper's appendix and the reference code use 0.1, which gives it to 6°; there
+    # our imitators all nearly match the oracle, so 0.1 is not the default.
     cue_noise: float = 1.0
     # The imitator reads the noisy bearing b as (cos b, sin b); True gives the angle itself. As an angle, a bearing
     # near ±π wraps by 2π between steps (0.4% of the expert's steps), which tripled the spread of its one-step

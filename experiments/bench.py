@@ -1,18 +1,21 @@
-"""``make bench``: seconds per iteration at the reference code's bandit configuration, seed scaling, and the CPU
-default's wall time, compile time and peak memory; LunarLander env steps per second against gymnasium's Box2D; the
-Brax envs' steps per second and the confounding layer's overhead. Prints a table; numbers are measured on the machine
-it runs on.
+"""``make bench``: the default job's wall time as ``make run`` starts it, whole, in each way its two algorithms can
+share the machine (section ``e2e``: pinned side by side, unpinned, in turn over 2 host devices); seconds per
+iteration at the reference code's bandit configuration, seed scaling; LunarLander env steps per second against
+gymnasium's Box2D; the Brax envs' steps per second and the confounding layer's overhead. Prints a table; numbers are
+measured on the machine it runs on.
 
 Also seconds per iteration versus seeds on one device and over 2 host devices, and the GRU's achieved GFLOP/s against
 a plain matmul's (``bench_scale.py``), and seconds per iteration of every algorithm at each env's CPU preset (section
 ``algos``), and milliseconds per part of the default job's iteration (section ``profile``). Sections can be chosen:
-``make bench SECTIONS="seeds e2e efficiency profile reference algos lunar brax"`` (the default is all eight).
+``make bench SECTIONS="seeds e2e efficiency profile reference algos lunar brax"`` (the default is all eight);
+``python experiments/bench.py e2e --e2e-iterations 50`` compares the layouts on a shorter run.
 """
 
 from __future__ import annotations
 
 import argparse
-import resource
+import csv
+import pathlib
 import subprocess
 import sys
 import tempfile
@@ -46,27 +49,46 @@ def time_iterations(
     return compile_s, (time.perf_counter() - t0) / iters
 
 
-def main(sections: list[str]) -> None:
+# How the default job's two algorithms can share the machine: the command-line flags of each layout.
+LAYOUTS = {
+    "side by side, each pinned to its own core (the default)": [],
+    "side by side, unpinned": ["--no-pin"],
+    "one process, the algorithms in turn, seeds over 2 host devices": ["--jobs", "1", "--host-devices", "2"],
+}
+
+
+def default_job(cores: list[int], iterations: int) -> None:
+    """The default job as ``make run`` starts it (``python -m jaxdeconf.run --env bandit --algo bc,dil --seeds 10``),
+    timed whole (start-up, compiles, training, references, summary and figures) in each layout of ``LAYOUTS``, one
+    after another; ``iterations`` > 0 shortens every layout's run alike."""
+    extra = ["--set", f"train.iterations={iterations}"] if iterations else []
+    print(f"\n## The default job, whole: python -m jaxdeconf.run --env bandit --algo bc,dil --seeds 10 "
+          f"{' '.join(extra)}")
+    print(f"##  on the {len(cores)} cores available, each layout in turn")
+    for name, flags in LAYOUTS.items():
+        if "--host-devices" in flags and len(cores) < 2:
+            continue
+        with tempfile.TemporaryDirectory() as out:
+            t0 = time.perf_counter()
+            proc = subprocess.run([sys.executable, "-m", "jaxdeconf.run", "--seeds", "10", "--out", out, "--quiet",
+                                   *extra, *flags], capture_output=True, text=True, check=False)
+            wall = time.perf_counter() - t0
+            summary = pathlib.Path(out, "summary.csv")
+            rows = {r["algo"]: r for r in csv.DictReader(summary.read_text().splitlines())} if summary.exists() else {}
+        result = ", ".join(f"{a} {float(r['return_mean']):.2f}" for a, r in rows.items())
+        print(f"{name}: wall {wall:.1f} s, exit {proc.returncode}; {result}", flush=True)
+        for line in proc.stdout.splitlines():
+            if "compile" in line and "run" in line:
+                print("  " + line)
+
+
+def main(sections: list[str], e2e_iterations: int = 0) -> None:
     """Run the named measurements (default: all) and print the table."""
     cores = available_cores()
     if "seeds" in sections:  # Subprocesses, before this process pins itself: a 2-device process gets both cores.
         bench_scale.seeds_and_devices()
-    if "e2e" in sections:
-        print("\n## CPU default end to end: python -m jaxdeconf.run --env bandit --algo bc,dil --seeds 10")
-        print(f"##  (bc and dil side by side, a process each, on the {len(cores)} cores available; runs before this")
-        print("##  process starts JAX and pins itself to one core, so the CLI gets every core)")
-        with tempfile.TemporaryDirectory() as out:
-            t0 = time.perf_counter()
-            proc = subprocess.run(
-                [sys.executable, "-m", "jaxdeconf.run", "--seeds", "10", "--out", out, "--quiet"],
-                capture_output=True, text=True, check=False,
-            )
-            wall = time.perf_counter() - t0
-            peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
-            print(f"wall {wall:.1f} s, peak memory of one process {peak:.0f} MiB, exit {proc.returncode}")
-            for line in proc.stdout.splitlines():
-                if "compile" in line and "run" in line:
-                    print("  " + line)
+    if "e2e" in sections:  # Subprocesses too: the CLI gets every core.
+        default_job(cores, e2e_iterations)
 
     pin_to_core(cores[0])  # The in-process sections measure one core.
     print(f"\njax {jax.__version__} on {jax.devices()[0].platform}; {len(cores)} cores available, "
@@ -214,20 +236,27 @@ def _brax_one(name: str, n: int) -> None:
 
 SECTIONS = ("seeds", "e2e", "efficiency", "profile", "reference", "algos", "lunar", "brax")
 
-def parse_args(argv: list[str] | None = None) -> list[str]:
-    """The sections to run (all when none is named); exit code 2 with one line for an unknown one."""
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The sections to run (all when none is named) and the e2e length; exit code 2 with one line for bad input."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0].replace("\n", " "),
                                      epilog=f"sections: {', '.join(SECTIONS)}")
     parser.add_argument("sections", nargs="*", help="sections to run (default: all)")
-    chosen = parser.parse_args(argv).sections or list(SECTIONS)
-    unknown = [name for name in chosen if name not in SECTIONS]
+    parser.add_argument("--e2e-iterations", type=int, default=0,
+                        help="e2e: train every layout this many iterations (default: the preset's 300)")
+    args = parser.parse_args(argv)
+    args.sections = args.sections or list(SECTIONS)
+    unknown = [name for name in args.sections if name not in SECTIONS]
     if unknown:
         parser.exit(2, f"error: unknown bench section {unknown[0]!r}; allowed: {', '.join(SECTIONS)}\n")
-    return chosen
+    if args.e2e_iterations < 0:
+        parser.exit(2, f"error: --e2e-iterations={args.e2e_iterations} is not allowed: need 0 (the preset's) or "
+                       "a positive integer\n")
+    return args
 
 
 if __name__ == "__main__":
     if sys.argv[1:2] == ["_brax_one"]:  # One Brax env's measurement in a fresh process (see ``brax``).
         _brax_one(sys.argv[2], int(sys.argv[3]))
         sys.exit(0)
-    main(parse_args())
+    args = parse_args()
+    main(args.sections, args.e2e_iterations)

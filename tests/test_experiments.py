@@ -18,6 +18,7 @@ SCRIPTS = {
     "train_expert.py": "PPO",
     "train_brax_expert.py": "Brax",
     "validate_lunar_lander.py": "Our JAX LunarLander against gymnasium's LunarLander-v3",
+    "paper_scale.py": "ready for the accelerator",
 }
 
 
@@ -45,6 +46,7 @@ def test_help_describes_the_script(script):
     ("bench.py", ["nope"], "error: unknown bench section 'nope'; allowed: seeds, e2e"),
     ("bench_scale.py", ["--devices", "0"], "error: --devices=0 is not allowed: need a positive integer"),
     ("validate_lunar_lander.py", ["--episodes", "0"], "error: --episodes=0 is not allowed: need a positive integer"),
+    ("paper_scale.py", ["check", "--algo", "bc,sqil"], "error: unknown algorithm 'sqil'; allowed: bc, oracle"),
 ])
 def test_bad_input_is_one_line_and_exit_code_2(script, args, message):
     proc = run(script, *args, timeout=100)
@@ -91,3 +93,15 @@ def test_train_brax_expert_tiny_run(tmp_path):
     assert proc.returncode == 0, proc.stderr
     meta = json.loads((tmp_path / "out" / "half_cheetah.json").read_text())
     assert meta["command"].startswith("python experiments/train_brax_expert.py --env half_cheetah")
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(5400)
+def test_every_paper_preset_compiles_runs_and_fits_an_h100():
+    """One iteration of every algorithm at every env's paper preset on this CPU, each program's memory (the
+    estimate and XLA's account of the compiled chunk, at 5 seeds) under an H100's 80 GB."""
+    proc = run("paper_scale.py", "check", timeout=5300)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    rows = [line for line in proc.stdout.splitlines() if line.startswith("| ") and "|---" not in line][1:]
+    assert len(rows) == 4 * 6, proc.stdout
+    assert all(row.rstrip(" |").endswith("yes") for row in rows), proc.stdout
