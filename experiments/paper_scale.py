@@ -49,13 +49,13 @@ def one_iteration(env: str, algo: str, seeds: int) -> dict[str, float]:
             "buffers": est.buffers * seeds, "xla": xla * seeds}
 
 
-def check(seeds: int, algos: list[str]) -> int:
+def check(seeds: int, envs: list[str], algos: list[str]) -> int:
     """Every algorithm at every paper preset: one iteration each, with memory against an H100; exit 1 on a failure."""
     print(f"## paper presets, one iteration at 1 seed; memory scaled to {seeds} seeds against an 80 GB H100")
     print("| env | algo | compile s | iteration s | estimate GB (buffers) | XLA chunk GB | fits |")
     print("|---|---|---|---|---|---|---|")
     failed = 0
-    for env in ENVS:
+    for env in envs:
         for algo in algos:
             try:
                 r = one_iteration(env, algo, seeds)
@@ -90,6 +90,7 @@ def main(argv: list[str] | None = None) -> int:
                         "time: train the MDP study at paper scale (a GPU)")
     parser.add_argument("--seeds", type=int, default=5, help="check: seeds the memory is scaled to (default: 5)")
     parser.add_argument("--algo", default="all", help="check: comma-separated algorithms (default: all)")
+    parser.add_argument("--env", default=",".join(ENVS), help="check: comma-separated envs (default: all four)")
     parser.add_argument("--out", default="report-paper", help="time: the report folder (default: report-paper)")
     args = parser.parse_args(argv)
     if args.seeds < 1:
@@ -98,7 +99,10 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [a for a in algos if a not in names()]
     if unknown:
         parser.exit(2, f"error: unknown algorithm {unknown[0]!r}; allowed: {', '.join(names())}\n")
-    return check(args.seeds, algos) if args.mode == "check" else time_study(args.out)
+    envs = args.env.split(",")
+    if any(e not in ENVS for e in envs):
+        parser.exit(2, f"error: unknown env {next(e for e in envs if e not in ENVS)!r}; allowed: {', '.join(ENVS)}\n")
+    return check(args.seeds, envs, algos) if args.mode == "check" else time_study(args.out)
 
 
 if __name__ == "__main__":
