@@ -7,7 +7,7 @@ measured on the machine it runs on.
 Also seconds per iteration versus seeds on one device and over 2 host devices, and the GRU's achieved GFLOP/s against
 a plain matmul's (``bench_scale.py``), and seconds per iteration of every algorithm at each env's CPU preset (section
 ``algos``), and milliseconds per part of the default job's iteration (section ``profile``). Sections can be chosen:
-``make bench SECTIONS="seeds e2e efficiency profile reference algos lunar brax"`` (the default is all eight);
+``make bench SECTIONS="seeds e2e efficiency profile reference batch algos lunar brax"`` (the default is all nine);
 ``python experiments/bench.py e2e --e2e-iterations 50`` compares the layouts on a shorter run.
 """
 
@@ -107,6 +107,9 @@ def main(sections: list[str], e2e_iterations: int = 0) -> None:
     if "profile" in sections:
         bench_scale.profile()
 
+    if "batch" in sections:
+        batch_sizes()
+
     if "algos" in sections:
         print("\n## Every algorithm at each env's CPU preset: seconds per iteration (after warm-up), 1 seed")
         for env in ("bandit", "lunar_lander", "half_cheetah", "ant_goal"):
@@ -118,6 +121,21 @@ def main(sections: list[str], e2e_iterations: int = 0) -> None:
         lunar_lander_speed()
     if "brax" in sections:
         brax_speed()
+
+
+def batch_sizes() -> None:
+    """Milliseconds per gradient step of bc (policy steps) and dil (ELBO steps) at the bandit CPU preset by batch size,
+    10 seeds vmapped, one core: whether a step is bound by its overhead (flat in the batch) or its arithmetic."""
+    print("\n## Gradient steps by batch size: bandit CPU preset, 10 seeds vmapped, one core, 8 steps per iteration")
+    for batch in (32, 128, 256, 512):
+        over = {"train.batch_size": batch, "train.buffer_episodes": batch, "train.episodes_per_iter": batch,
+                "train.policy_steps": 8, "train.encoder_steps": 8, "train.eval_episodes": 16}
+        cells = []
+        for name in ("bc", "dil"):
+            _, s = time_iterations(name, "cpu", 10, 2, over)
+            per_episode = s * 1e6 / (10 * 8 * batch)  # Per seed, step and episode of the batch.
+            cells.append(f"{name} {s * 1e3:7.1f} ms/iteration, {per_episode:5.0f} us per seed, step and episode")
+        print(f"batch {batch:3d}: " + "; ".join(cells), flush=True)
 
 
 def lunar_lander_speed() -> None:
@@ -234,7 +252,7 @@ def _brax_one(name: str, n: int) -> None:
           f"{100 * (rates['raw'] / rates['ours'] - 1):+.1f}%", flush=True)
 
 
-SECTIONS = ("seeds", "e2e", "efficiency", "profile", "reference", "algos", "lunar", "brax")
+SECTIONS = ("seeds", "e2e", "efficiency", "profile", "reference", "batch", "algos", "lunar", "brax")
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """The sections to run (all when none is named) and the e2e length; exit code 2 with one line for bad input."""
