@@ -78,17 +78,26 @@ def test_beta_schedule():
     assert float(mixture_beta(jnp.int32(0), 0)) == 0.0
 
 
+@pytest.mark.timeout(300)
 def test_dagger_labels_are_the_experts_action_probabilities(tiny_config):
+    """Every stored label is the bandit expert's distribution at that state, written out by hand from the episode's
+    θ (the env's best arm, not the expert's view): p = 0.6 on θ and (1 - p) / 4 = 0.1 on each other arm, at beta = 1
+    and at beta = 1/2 (where the imitator picked some of the executed actions) alike."""
     algo = build_algorithm(tiny_config(**{"dagger.anneal_iterations": "2"}), "dagger")
+    collect = jax.jit(algo.collect_expert)
     state = jax.jit(algo.init)(jax.random.key(0))
-    state, metrics = jax.jit(algo.collect_expert)(state, jax.random.key(1))
+    state, metrics = collect(state, jax.random.key(1))
     assert float(metrics["beta"]) == 1.0
+    state, metrics = collect(state.replace(iteration=jnp.int32(1)), jax.random.key(2))
+    assert float(metrics["beta"]) == 0.5
     data = state.expert_buffer.data
     n = int(state.expert_buffer.size)
-    obs = jax.tree.map(lambda x: x[:-1, :n], data.traj.obs)
-    expected = algo.env.expert_probs(obs, algo.env_params)  # [T, n, arms]: p on θ, (1 - p)/4 elsewhere.
-    np.testing.assert_allclose(data.tags["label"][:, :n], expected, rtol=1e-6)
-    np.testing.assert_allclose(np.sort(np.asarray(expected[0, 0])), [0.1, 0.1, 0.1, 0.1, 0.6], rtol=1e-6)
+    assert n == 8  # Both collections' episodes (4 each) are stored.
+    theta = np.asarray(data.traj.best_action[:, :n])  # [T, n]: θ at every step.
+    assert (theta == theta[:1]).all() and len(np.unique(theta[0])) > 1  # θ fixed per episode, varied across them.
+    expected = np.full((*theta.shape, 5), 0.1)
+    np.put_along_axis(expected, theta[..., None], 0.6, axis=-1)
+    np.testing.assert_allclose(np.asarray(data.tags["label"][:, :n]), expected, rtol=1e-6)
 
 
 def test_soft_nll_hand_values():
@@ -151,20 +160,57 @@ def test_discriminator_loss_and_reward_hand_values():
     np.testing.assert_allclose(gail_reward(jnp.array(np.log(3.0))), np.log(4.0), rtol=1e-6)
 
 
+@pytest.mark.timeout(300)
 def test_recurrent_ppo_replay_equals_rollout(tiny_config):
     """The log-probabilities replayed from a zero GRU state equal those recorded while acting: the first PPO
-    minibatch of the first epoch sees a ratio of 1."""
+    minibatch of the first epoch sees a ratio of 1. On those episodes, GAIL's PPO loss is the clipped surrogate of a
+    numpy re-computation, and a small step down its gradient on a hand-built advantage, +1 where arm 0 was pulled
+    and -1 elsewhere, makes arm 0 more likely at the steps it was pulled and every other pulled arm less likely."""
     algo = build_algorithm(tiny_config(), "gail")
     state = jax.jit(algo.init)(jax.random.key(0))
     state, _ = jax.jit(algo.collect_explore)(state, jax.random.key(1))
     data = state.explore_buffer.data
     out = jax.jit(algo.policy_outputs)(state.policy.params, state, data.traj)
-    replayed = log_prob(algo.space, out, data.traj.action)
-    ratio = np.exp(np.asarray(replayed) - np.asarray(data.tags["log_prob"]))
-    np.testing.assert_allclose(ratio, 1.0, atol=1e-5)
-    assert np.ptp(np.asarray(data.tags["log_prob"])) > 0.1  # A stochastic policy, so the check has teeth.
-    _, metrics = jax.jit(algo.update_policy)(state, jax.random.key(2))
-    assert np.isfinite(float(metrics["policy_loss"]))
+    replayed = np.asarray(log_prob(algo.space, out, data.traj.action))
+    recorded = np.asarray(data.tags["log_prob"])
+    np.testing.assert_allclose(np.exp(replayed - recorded), 1.0, atol=1e-5)
+    assert np.ptp(recorded) > 0.1  # A stochastic policy, so the check has teeth.
+
+    action, valid = np.asarray(data.traj.action), np.asarray(data.traj.valid)
+    pulled0 = action == 0
+    assert pulled0[valid].any() and (~pulled0)[valid].any()
+    adv = np.where(pulled0, 1.0, -1.0).astype(np.float32)
+    targets = jnp.zeros(valid.shape, jnp.float32)
+    loss_fn = jax.jit(algo.ppo_loss)
+
+    # Old log-probabilities shifted by -0.5, 0, 0.1 and 0.5 (ratios e^0.5, 1, e^-0.1, e^-0.5) across the steps, so
+    # both sides of the clip (eps 0.2) are taken; the expected surrogate from numpy, advantages standardised over the
+    # valid steps.
+    shift = np.resize(np.array([-0.5, 0.0, 0.1, 0.5], np.float32), valid.shape)
+    batch = data.replace(tags={"log_prob": jnp.asarray(recorded + shift), "adv": jnp.asarray(adv),
+                               "target": targets})
+    _, metrics = loss_fn(state.policy.params, batch)
+    a = adv[valid].astype(np.float64)
+    a = (a - a.mean()) / (a.std() + 1e-8)
+    ratio = np.exp(-shift[valid].astype(np.float64))
+    eps = algo.config.gail.clip_eps
+    expected = -np.mean(np.minimum(ratio * a, np.clip(ratio, 1 - eps, 1 + eps) * a))
+    assert float(metrics["policy_loss"]) == pytest.approx(expected, rel=1e-4)
+    assert abs(expected - (-np.mean(ratio * a))) > 0.05  # The clip changes the value: the check sees it.
+
+    # A small step down the loss's gradient from the behaviour policy (ratio 1) on the hand-built advantage. (One
+    # Adam step moves every weight by the learning rate whatever its gradient, which on this GRU moves log-probs by
+    # up to 1.5 nats: no longer a first-order step whose direction the loss's sign decides.) To first order the step
+    # raises sum_t A_t log p(a_t); measured at 1e-3: +0.82 mean change where arm 0 was pulled, -1.07 elsewhere.
+    batch = data.replace(tags={"log_prob": data.tags["log_prob"], "adv": jnp.asarray(adv), "target": targets})
+    grads, metrics = jax.jit(jax.grad(algo.ppo_loss, has_aux=True))(state.policy.params, batch)
+    assert float(metrics["policy_loss"]) == pytest.approx(0.0, abs=1e-6)  # Ratio 1, standardised A: mean 0.
+    stepped = jax.tree.map(lambda p, g: p - 1e-4 * g, state.policy.params, grads)
+    after = np.asarray(log_prob(algo.space, jax.jit(algo.policy_outputs)(stepped, state, data.traj),
+                                data.traj.action))
+    change = after - replayed
+    assert (change * adv)[valid].mean() > 0
+    assert change[valid & pulled0].mean() > 0 and change[valid & ~pulled0].mean() < 0, change
 
 
 # gail's two programs take about two minutes to compile; dagger keeps the check in the default tier.
