@@ -1,13 +1,15 @@
 """``make bench`` sections on scale: seconds per iteration versus seeds, on one device and with the seed axis split
 over host devices (section ``seeds``), per-core efficiency of the GRU steps against a plain matmul measured in
-the same process (section ``efficiency``), and where an iteration of the default job goes (section ``profile``).
-Each device count runs in its own process (a process's CPU device count is fixed when JAX starts), unpinned, so a
-2-device process may use both cores.
+the same process (section ``efficiency``), where an iteration of the default job goes (section ``profile``), and
+the GRU's gradient steps against the minGRU's (``model.cell``; ``python experiments/bench_scale.py --cells``, on one
+core). Each device count runs in its own process (a process's CPU device count is fixed when JAX starts), unpinned,
+so a 2-device process may use both cores.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import subprocess
 import sys
 import time
@@ -111,6 +113,40 @@ def profile(seeds: int = 10) -> None:
               f"one evaluation per {t.chunk} iterations)", flush=True)
 
 
+def cells(seed_counts: tuple[int, ...] = (1, 10)) -> None:
+    """Milliseconds per BC gradient step (bc's ``update_policy``) and per ELBO step (dil's ``update_encoder``) at the
+    bandit CPU preset (width 32, hidden 32, batch 32, 100 steps), GRU against minGRU, the seeds vmapped."""
+    print("\n## bandit CPU preset: ms per gradient step, model.cell=gru against mingru, seeds vmapped")
+    for seeds in seed_counts:
+        ms = {cell: _cell_steps(cell, seeds) for cell in ("gru", "mingru")}
+        for part in ("BC step", "ELBO step"):
+            gru, mingru = ms["gru"][part], ms["mingru"][part]
+            print(f"seeds={seeds:2d} {part:9s}: gru {gru:7.2f} ms, mingru {mingru:7.2f} ms, "
+                  f"gru / mingru {gru / mingru:5.2f}", flush=True)
+
+
+def _cell_steps(cell: str, seeds: int) -> dict[str, float]:
+    """``cells``' milliseconds per BC and per ELBO step of one cell at ``seeds`` seeds vmapped."""
+    import jax
+
+    from jaxdeconf.resolve import build
+    from jaxdeconf.train import build_algorithm
+
+    ms = {}
+    for name, part in (("bc", "BC step"), ("dil", "ELBO step")):
+        config = build("bandit", "cpu", (name,), seeds, {"train.warmup": "0", "model.cell": cell})
+        algo = build_algorithm(config, name)
+        k_init, k_parts = jax.random.split(jax.random.key(0))
+        states = jax.jit(jax.vmap(algo.init))(jax.random.split(k_init, seeds))
+        keys = jax.random.split(k_parts, seeds)
+        for fn in (algo.collect_expert, algo.collect_explore):  # Fill the buffers the steps sample.
+            states = jax.jit(jax.vmap(fn))(states, keys)[0]
+        update, steps = ((algo.update_policy, config.train.policy_steps) if name == "bc"
+                         else (algo.update_encoder, config.train.encoder_steps))
+        ms[part] = 1e3 * _best(jax.jit(jax.vmap(update)), states, keys, reps=5) / steps
+    return ms
+
+
 def _best(fn: object, *args: object, reps: int = 20) -> float:
     """Best wall seconds of ``reps`` calls after a warm-up."""
     import jax
@@ -127,9 +163,15 @@ def _best(fn: object, *args: object, reps: int = 20) -> float:
 if __name__ == "__main__":  # One process of ``seeds_and_devices`` (nothing may start JAX before the device count).
     parser = argparse.ArgumentParser(description="One process of `make bench`'s seeds section: dil's seconds per "
                                      "iteration at the bandit CPU preset for 1, 2, 4 and 8 seeds with the CPU shown "
-                                     "as N devices; run by bench.py, once per device count.")
-    parser.add_argument("--devices", type=int, required=True, help="CPU devices (the seed axis is split over them)")
+                                     "as N devices; run by bench.py, once per device count. With --cells: the GRU's "
+                                     "gradient steps against the minGRU's, on one core.")
+    parser.add_argument("--devices", type=int, help="CPU devices (the seed axis is split over them)")
+    parser.add_argument("--cells", action="store_true", help="time model.cell=gru against mingru instead")
     args = parser.parse_args()
-    if args.devices < 1:
+    if args.cells:
+        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})  # One core, before JAX starts.
+        cells()
+        sys.exit(0)
+    if args.devices is None or args.devices < 1:
         parser.exit(2, f"error: --devices={args.devices} is not allowed: need a positive integer\n")
     devices_one(args.devices)

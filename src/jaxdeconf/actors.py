@@ -35,17 +35,18 @@ class ExpertActor:
 
 @dataclasses.dataclass(frozen=True)
 class RecurrentActor:
-    """Naive BC (view "imitator") or the oracle (view "oracle"): a GRU over observations and previous actions."""
+    """Naive BC (view "imitator") or the oracle (view "oracle"): a GRU (or minGRU) over observations and previous
+    actions, one ``recur`` step per call."""
 
     policy: RecurrentPolicy
     view: str
 
     def init_carry(self, batch: int) -> jax.Array:
-        """Zero GRU state."""
+        """Zero cell state."""
         return jnp.zeros((batch, self.policy.hidden), jnp.float32)
 
     def __call__(self, params: Any, carry: jax.Array, obs: Observation, prev_action: jax.Array):
-        """One GRU step on the chosen view."""
+        """One cell step on the chosen view."""
         x = self.policy.apply(params, getattr(obs, self.view), prev_action, method=RecurrentPolicy.embed)
         return self.policy.apply(params, carry, x, method=RecurrentPolicy.recur)
 
@@ -63,7 +64,7 @@ class DeconfoundedActor:
     delta_scale: Any = None  # [d] array, or None.
 
     def init_carry(self, batch: int) -> Any:
-        """Zero GRU state of the inference model (and, with deltas, no previous observation yet)."""
+        """Zero recurrent state of the inference model (and, with deltas, no previous observation yet)."""
         gru = jnp.zeros((batch, self.encoder.hidden), jnp.float32)
         if self.delta_scale is None:
             return gru

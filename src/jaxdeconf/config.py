@@ -17,6 +17,7 @@ from jaxdeconf.envs import parse_bool
 from jaxdeconf.errors import ConfigError
 
 ENCODERS = ("gru", "evidence", "filter")
+CELLS = ("gru", "mingru")
 WEIGHTINGS = ("sum", "group_mean")  # losses.WEIGHTINGS (not imported: this module stays free of JAX).
 GROUP_LIKELIHOODS = ("declared", "gaussian")
 POLICY_LATENTS = ("current", "matched")
@@ -51,6 +52,7 @@ class ModelConfig:
     # fade once the evidence is in) or "filter" (the same product with each factor read off the step and the belief
     # so far: assumed-density filtering). models.py has the three.
     encoder: str = field("gru", ENCODERS)
+    cell: str = field("gru", CELLS)  # Cell of the GRU q_phi and the recurrent policies: "gru" (paper's), "mingru".
     # How the decoder weighs the groups of the imitator's view an env declares (``Environment.obs_groups``: e.g. the
     # body and the cue): "sum" adds every dimension's NLL, "group_mean" averages within each group and adds the groups
     # (the reference code's per-key MSE). One-group envs (bandit, LunarLander) are the same under both.

@@ -1,4 +1,5 @@
-"""Losses as module-level pure functions returning ``(loss, metrics)``; loops over time are ``lax.scan``s.
+"""Losses as module-level pure functions returning ``(loss, metrics)``; loops over time are ``lax.scan``s, or for a
+minGRU cell (``models.parallel_in_time``) one associative scan of its linear recurrence (``linear_scan``).
 
 Arrays are time-major. A trajectory of T steps holds observations ``obs`` [T+1, B, d], actions [T, B(, A)] and a
 ``valid`` mask [T, B]; step t is valid while the episode has not terminated before t.
@@ -11,7 +12,16 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from jaxdeconf.models import Decoder, Encoder, EvidenceEncoder, LatentPolicy, RecurrentPolicy, action_features, log_prob
+from jaxdeconf.models import (
+    Decoder,
+    Encoder,
+    EvidenceEncoder,
+    LatentPolicy,
+    RecurrentPolicy,
+    action_features,
+    log_prob,
+    parallel_in_time,
+)
 
 LOG_2PI = jnp.log(2.0 * jnp.pi)
 
@@ -87,11 +97,36 @@ def transition_inputs(obs: jax.Array, delta_scale: jax.Array) -> jax.Array:
     return jnp.concatenate([obs, (obs - prev) / delta_scale], axis=-1)
 
 
+def linear_scan(a: jax.Array, b: jax.Array) -> jax.Array:
+    """h_t = a_t * h_{t-1} + b_t along axis 0 from h_{-1} = 0, for a, b [T, ...]: one associative scan of the pairs
+    (a_t, b_t) under (a1, b1) then (a2, b2) -> (a1 a2, a2 b1 + b2), the composition of the two affine maps."""
+
+    def compose(first: tuple[jax.Array, jax.Array], then: tuple[jax.Array, jax.Array]) -> tuple[jax.Array, jax.Array]:
+        return first[0] * then[0], then[0] * first[1] + then[1]
+
+    _, h = jax.lax.associative_scan(compose, (a, b))
+    return h
+
+
+def cell_states(
+    network: Encoder | RecurrentPolicy, params: Any, inputs: jax.Array, read: jax.Array | None = None
+) -> jax.Array:
+    """A minGRU network's cell states [T, B, hidden] over cell inputs [T, B, width], from a zero state, with every
+    step's input projection computed at once. Where ``read`` [T, B] is false the step is skipped (a = 1, b = 0): the
+    state is carried unchanged."""
+    a, b = network.apply(params, inputs, method="coefficients")
+    if read is not None:
+        a, b = jnp.where(read[..., None], a, 1.0), jnp.where(read[..., None], b, 0.0)
+    return linear_scan(a, b)
+
+
 def encoder_scan(
     encoder: Encoder | EvidenceEncoder, params: Any, obs: jax.Array, prev_action: jax.Array
 ) -> tuple[jax.Array, jax.Array]:
     """Posterior means and log-variances [T, B, L] of q_phi over a sequence (obs and prev_action [T, B, ...])."""
     inputs = encoder.apply(params, obs, prev_action, method="embed")
+    if parallel_in_time(encoder):
+        return encoder.apply(params, cell_states(encoder, params, inputs), method="readout")
     carry = jnp.zeros((*obs.shape[1:-1], encoder.hidden), jnp.float32)
 
     def body(carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
@@ -104,6 +139,8 @@ def encoder_scan(
 def recurrent_policy_scan(policy: RecurrentPolicy, params: Any, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
     """Head outputs [T, B, out] of a recurrent policy over a sequence."""
     inputs = policy.apply(params, obs, prev_action, method=RecurrentPolicy.embed)
+    if parallel_in_time(policy):
+        return policy.apply(params, cell_states(policy, params, inputs), method=RecurrentPolicy.readout)
     carry = jnp.zeros((*obs.shape[1:-1], policy.hidden), jnp.float32)
 
     def body(carry: jax.Array, x: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -213,6 +250,10 @@ def trajectory_posterior(
     so an episode that ended early is encoded exactly as if its sequence stopped at its last real step.
     """
     inputs = encoder.apply(params, obs, prev_action, method="embed")
+    if parallel_in_time(encoder):
+        mean, logvar = encoder.apply(params, cell_states(encoder, params, inputs, read)[-1], method="readout")
+        seen = jnp.any(read, axis=0)[..., None]  # Nothing read: the zero output, as the scan below carries.
+        return jnp.where(seen, mean, 0.0), jnp.where(seen, logvar, 0.0)
     batch, latent = obs.shape[1:-1], encoder.latent
     init = (jnp.zeros((*batch, encoder.hidden), jnp.float32), jnp.zeros((*batch, latent), jnp.float32),
             jnp.zeros((*batch, latent), jnp.float32))

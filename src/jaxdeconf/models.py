@@ -1,7 +1,10 @@
 """Flax networks: inference model q_phi, decoder p_psi, latent-conditional and recurrent policies, action heads.
 
-Every network is split into per-timestep methods (``embed`` works on any leading shape, ``recur`` does one GRU step)
-so that the loops over time live in ``losses.py`` as ``lax.scan``s that tests can compare against plain loops.
+Every network is split into per-timestep methods (``embed`` works on any leading shape, ``recur`` does one recurrent
+step) so that the loops over time live in ``losses.py`` as ``lax.scan``s that tests can compare against plain loops.
+The minGRU cell's recurrence is linear in its state, so its networks also give the coefficients of h_t = a_t h_{t-1}
++ b_t for a whole sequence (``coefficients``) and read a whole sequence of states out (``readout``): ``losses.py``
+runs such a sequence as one associative scan.
 """
 
 from __future__ import annotations
@@ -47,6 +50,40 @@ def orthogonal(scale: float = 1.0) -> nn.initializers.Initializer:
 def gru_cell(hidden: int) -> nn.GRUCell:
     """flax's GRU cell with its orthogonal recurrent initialiser replaced by ``orthogonal`` (no LAPACK)."""
     return nn.GRUCell(hidden, recurrent_kernel_init=orthogonal())
+
+
+class MinGRUCell(nn.Module):
+    """minGRU (Feng et al. 2024, "Were RNNs all we needed?"): h_t = (1 - z_t) h_{t-1} + z_t h~_t with
+    z_t = sigmoid(Dense(x_t)) and h~_t = Dense(x_t), both of the input alone. The recurrence h_t = a_t h_{t-1} + b_t
+    (a = 1 - z, b = z h~) is linear in h, so a whole sequence is one associative scan (``losses.linear_scan``)."""
+
+    features: int
+
+    def setup(self) -> None:
+        """The gate's and the candidate's projections of the input; no recurrent kernel."""
+        self.gate = nn.Dense(self.features)
+        self.candidate = nn.Dense(self.features)
+
+    def coefficients(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(a, b) [..., features] of h_t = a h_{t-1} + b for inputs x [..., E] of any leading shape."""
+        z = nn.sigmoid(self.gate(x))
+        return 1.0 - z, z * self.candidate(x)
+
+    def __call__(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """One step in flax's cell convention: carry [B, features], x [B, E] -> (h_t, h_t)."""
+        a, b = self.coefficients(x)
+        h = a * carry + b
+        return h, h
+
+
+def recurrent_cell(kind: str, hidden: int) -> nn.GRUCell | MinGRUCell:
+    """The cell ``model.cell`` names: "gru" (``gru_cell``) or "mingru" (``MinGRUCell``)."""
+    return gru_cell(hidden) if kind == "gru" else MinGRUCell(hidden)
+
+
+def parallel_in_time(network: nn.Module) -> bool:
+    """Whether a recurrent network's sequences run as one associative scan (its cell is a minGRU)."""
+    return getattr(network, "cell_kind", "gru") == "mingru"
 
 
 class MLP(nn.Module):
@@ -139,26 +176,36 @@ class StepInput(nn.Module):
 
 
 class Encoder(StepInput):
-    """q_phi(theta-hat | tau_{:t}): MLP(obs) ⊕ embedding(previous action) -> GRU -> (mean, log-variance)."""
+    """q_phi(theta-hat | tau_{:t}): MLP(obs) ⊕ embedding(previous action) -> GRU (or minGRU) -> (mean, log-variance).
+    """
 
     hidden: int
     latent: int
+    cell_kind: str = "gru"  # ``model.cell``: "gru" or "mingru" (``recurrent_cell``).
 
     def setup(self) -> None:
         """Sub-networks shared by ``embed`` and ``recur``."""
         super().setup()
-        self.cell = gru_cell(self.hidden)
+        self.cell = recurrent_cell(self.cell_kind, self.hidden)
         self.out = nn.Dense(2 * self.latent)
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
-        """GRU inputs [..., width] for any leading shape."""
+        """Cell inputs [..., width] for any leading shape."""
         return self.fused(obs, prev_action)
 
-    def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
-        """One GRU step: carry [B, hidden], x [B, E] -> new carry, (mean, logvar) each [B, latent]."""
-        carry, h = self.cell(carry, x)
+    def coefficients(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """minGRU only: (a, b) [..., hidden] of h_t = a h_{t-1} + b for cell inputs x [..., width]."""
+        return self.cell.coefficients(x)
+
+    def readout(self, h: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(mean, logvar) [..., latent] of cell states h [..., hidden] of any leading shape."""
         mean, logvar = jnp.split(self.out(h), 2, axis=-1)
-        return carry, (mean, logvar)
+        return mean, logvar
+
+    def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
+        """One cell step: carry [B, hidden], x [B, E] -> new carry, (mean, logvar) each [B, latent]."""
+        carry, h = self.cell(carry, x)
+        return carry, self.readout(h)
 
     def __call__(self, obs: jax.Array, prev_action: jax.Array) -> tuple[jax.Array, tuple[jax.Array, jax.Array]]:
         """One step from a zero carry (used for initialisation)."""
@@ -239,10 +286,13 @@ class FilterEncoder(EvidenceEncoder):
         return carry, self.belief(carry)
 
 
-def make_encoder(kind: str, width: int, action_embed: int, gru: int, latent: int) -> Encoder | EvidenceEncoder:
-    """q_phi by ``model.encoder``'s name: "gru" (hidden size ``gru``), "evidence" or "filter"."""
+def make_encoder(
+    kind: str, width: int, action_embed: int, gru: int, latent: int, cell: str = "gru"
+) -> Encoder | EvidenceEncoder:
+    """q_phi by ``model.encoder``'s name: "gru" (hidden size ``gru``, its cell ``cell``: "gru" or "mingru"),
+    "evidence" or "filter"."""
     if kind == "gru":
-        return Encoder(width, action_embed, gru, latent)
+        return Encoder(width, action_embed, gru, latent, cell)
     return {"evidence": EvidenceEncoder, "filter": FilterEncoder}[kind](width, action_embed, latent)
 
 
@@ -283,26 +333,35 @@ class LatentPolicy(nn.Module):
 
 
 class RecurrentPolicy(StepInput):
-    """Naive-BC (or oracle) policy: MLP(obs) ⊕ embedding(previous action) -> GRU -> MLP -> head."""
+    """Naive-BC (or oracle) policy: MLP(obs) ⊕ embedding(previous action) -> GRU (or minGRU) -> MLP -> head."""
 
     hidden: int
     out_size: int
+    cell_kind: str = "gru"  # ``model.cell``: "gru" or "mingru" (``recurrent_cell``).
 
     def setup(self) -> None:
         """Sub-networks shared by ``embed`` and ``recur``."""
         super().setup()
-        self.cell = gru_cell(self.hidden)
+        self.cell = recurrent_cell(self.cell_kind, self.hidden)
         self.head = MLP((self.width,))
         self.out = nn.Dense(self.out_size)
 
     def embed(self, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
-        """GRU inputs [..., width] for any leading shape (the same fused block as the encoder's, for parity)."""
+        """Cell inputs [..., width] for any leading shape (the same fused block as the encoder's, for parity)."""
         return self.fused(obs, prev_action)
 
+    def coefficients(self, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """minGRU only: (a, b) [..., hidden] of h_t = a h_{t-1} + b for cell inputs x [..., width]."""
+        return self.cell.coefficients(x)
+
+    def readout(self, h: jax.Array) -> jax.Array:
+        """Head outputs [..., out_size] of cell states h [..., hidden] of any leading shape."""
+        return self.out(self.head(h))
+
     def recur(self, carry: jax.Array, x: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """One GRU step -> new carry, head output [B, out_size]."""
+        """One cell step -> new carry, head output [B, out_size]."""
         carry, h = self.cell(carry, x)
-        return carry, self.out(self.head(h))
+        return carry, self.readout(h)
 
     def __call__(self, obs: jax.Array, prev_action: jax.Array) -> tuple[jax.Array, jax.Array]:
         """One step from a zero carry (used for initialisation)."""

@@ -25,7 +25,7 @@ class BehaviourCloning(Algorithm):
     def network(self) -> RecurrentPolicy:
         """The recurrent policy over the view and the previous action."""
         m = self.config.model
-        return RecurrentPolicy(m.width, m.action_embed, m.bc_gru, head_size(self.space))
+        return RecurrentPolicy(m.width, m.action_embed, m.bc_gru, head_size(self.space), m.cell)
 
     def init(self, key: jax.Array) -> TrainState:
         """Fresh policy and an expert buffer."""

@@ -70,7 +70,7 @@ class Deconfounded(Algorithm):
         m = self.config.model
         size = self.env.obs_sizes(self.env_params).imitator
         return (
-            make_encoder(m.encoder, m.width, m.action_embed, m.gru, m.latent),
+            make_encoder(m.encoder, m.width, m.action_embed, m.gru, m.latent, m.cell),
             Decoder(m.width, m.action_embed, size),
             LatentPolicy(m.width, head_size(self.space), m.policy_fusion),
         )

@@ -108,8 +108,8 @@ class GAIL(Algorithm):
     def networks(self) -> tuple[RecurrentPolicy, RecurrentPolicy, Discriminator]:
         """Actor, critic and discriminator."""
         m = self.config.model
-        return (RecurrentPolicy(m.width, m.action_embed, m.bc_gru, head_size(self.space)),
-                RecurrentPolicy(m.width, m.action_embed, m.bc_gru, 1), Discriminator(m.width))
+        return (RecurrentPolicy(m.width, m.action_embed, m.bc_gru, head_size(self.space), m.cell),
+                RecurrentPolicy(m.width, m.action_embed, m.bc_gru, 1, m.cell), Discriminator(m.width))
 
     @property
     def policy_tx(self) -> optax.GradientTransformation:
