@@ -20,6 +20,7 @@ from jaxdeconf.references import ReferenceActor, belief_update, safe_log
 
 pytestmark = pytest.mark.timeout(120)
 SPACE3 = ActionSpace("discrete", 3)
+SPACE5 = ActionSpace("discrete", 5)
 replay_jit = jax.jit(replay, static_argnums=(0, 3))
 
 
@@ -165,15 +166,37 @@ def test_learned_table_reads_results_folders(tmp_path):
 @pytest.mark.slow
 @pytest.mark.timeout(900)
 def test_trained_imitators_load_for_figure1(tmp_path, tiny_config):
-    """Figure 1's loader restores bc and dil from a results folder's checkpoints, and they act on the bandit."""
+    """Figure 1's loader restores bc's and dil's trained parameters (not their initial ones), and ``rollout_actions``
+    reports the θ the shared key draws for every policy and a best-arm count equal to the loaded actor's P(θ)
+    recomputed by teacher-forcing it along the same episodes."""
     from jaxdeconf import config as cfg
+    from jaxdeconf.actors import ExpertActor
+    from jaxdeconf.data import rollout
     from jaxdeconf.paper_figures import learned_actor, rollout_actions
-    from jaxdeconf.train import train_algorithm
+    from jaxdeconf.train import build_algorithm, train_algorithm
 
     config = tiny_config(seeds=1)
     (tmp_path / "config.json").write_text(cfg.dumps(config) + "\n")
+    key = jax.random.key(0)
     for algo in ("bc", "dil"):
         train_algorithm(config, algo, tmp_path / algo, progress=False)
-        actions, theta, count = rollout_actions(jax.random.key(0), *learned_actor(tmp_path, algo), episodes=3)
+        env, env_params, actor, actor_params = learned_actor(tmp_path, algo)
+        fresh = build_algorithm(config, algo)
+        initial = fresh.actor_params(jax.jit(fresh.init)(jax.random.key(config.seed_start)))
+        flat_loaded, flat_initial = jax.tree.leaves(actor_params), jax.tree.leaves(initial)
+        assert len(flat_loaded) == len(flat_initial)
+        assert any(not np.array_equal(a, b) for a, b in zip(flat_loaded, flat_initial, strict=True)), algo
+
+        actions, theta, count = rollout_actions(key, env, env_params, actor, actor_params, episodes=3)
         assert actions.shape == (3, 10) and theta.shape == (3,)  # The tiny config's 10-step bandit.
-        assert 0.0 <= count <= 10.0
+        # The same key gives every policy the same θ (Figure 1's rows share it).
+        _, expert_theta, _ = rollout_actions(key, env, env_params, ExpertActor(env, env_params), None, episodes=3)
+        np.testing.assert_array_equal(theta, expert_theta)
+        # The count: softmax of the teacher-forced outputs at θ, summed over the 10 steps, averaged over episodes.
+        traj, _ = jax.jit(rollout, static_argnums=(0, 2, 5))(env, env_params, actor, actor_params, key, 3)
+        np.testing.assert_array_equal(np.asarray(traj.action).T, actions)
+        logits = np.asarray(replay_jit(actor, actor_params, traj, SPACE5), np.float64)  # [T, 3, arms]
+        probs = np.exp(logits - logits.max(-1, keepdims=True))
+        probs /= probs.sum(-1, keepdims=True)
+        expected = probs[:, np.arange(3), theta].sum(0).mean()
+        assert count == pytest.approx(expected, rel=1e-5), algo
