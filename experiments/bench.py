@@ -52,8 +52,8 @@ def time_iterations(
 
 # How the default job's two algorithms can share the machine: the command-line flags of each layout.
 LAYOUTS = {
-    "side by side, each pinned to its own core (the default)": [],
-    "side by side, unpinned": ["--no-pin"],
+    "side by side, unpinned (the default)": [],
+    "side by side, each pinned to its own core": ["--pin"],
     "one process, the algorithms in turn, seeds over 2 host devices": ["--jobs", "1", "--host-devices", "2"],
 }
 

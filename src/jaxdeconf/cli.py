@@ -37,8 +37,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--jobs", type=int, default=0,
                    help="algorithms trained at once, each in its own process "
                         "(default: one per algorithm, at most one per available core)")
-    p.add_argument("--no-pin", action="store_true",
-                   help="leave side-by-side algorithms unpinned (default: each on its own core(s) when they fit)")
+    p.add_argument("--pin", action="store_true",
+                   help="pin each side-by-side algorithm to its own core(s) when they fit (default: unpinned, each "
+                        "free to use an idle core)")
     p.add_argument("--host-devices", type=int, default=1,
                    help="split this machine's CPU into N devices and the seeds over them (default: 1)")
     p.add_argument("--coordinator", default=None, metavar="HOST:PORT",

@@ -82,9 +82,9 @@ def worker_cores(slot: int, jobs: int, host_devices: int) -> list[int] | None:
     """The cores of side-by-side worker ``slot``: its own ``host_devices`` of the available cores when ``jobs`` such
     workers fit them, else None (unpinned, every worker on every core).
 
-    Pinned, each worker's XLA thread pool is sized to its own cores and never competes with the other workers' for
-    them; unpinned, two workers on two cores each run a two-thread pool on both cores, and the default job trained
-    markedly slower (docs/scale.md, "Where the default job's time goes")."""
+    Pinned, each worker's XLA thread pool is sized to its own cores; unpinned (the CLI's default), a worker can use
+    a core another has left idle, and the default job ran 7% faster so (docs/scale.md, "Where the default job's time
+    goes")."""
     if jobs * host_devices > len(_CORES):
         return None
     return _CORES[slot * host_devices:(slot + 1) * host_devices]

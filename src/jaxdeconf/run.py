@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
             lock = prepare_folder(folder, config, args.overwrite)
             try:
                 return _run(config, folder, quiet=args.quiet, jobs=args.jobs, host_devices=args.host_devices,
-                            pin=not args.no_pin)
+                            pin=args.pin)
             finally:
                 lock.release()
     except ConfigError as err:
@@ -69,7 +69,7 @@ def _setup(args: argparse.Namespace) -> tuple[cfg.Config, pathlib.Path]:
 
 
 def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0, host_devices: int = 1,
-         pin: bool = True) -> int:
+         pin: bool = False) -> int:
     """Train every algorithm not yet finished (side by side, a process each), then write references, summary and
     figures."""
     from jaxdeconf.platform import available_cores

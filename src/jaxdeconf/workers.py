@@ -76,7 +76,7 @@ def _die_with_parent() -> None:
 
 
 def train_workers(folder: pathlib.Path, queue: list[str], jobs: int, quiet: bool,
-                  host_devices: int, pin: bool = True) -> dict[str, int]:
+                  host_devices: int, pin: bool = False) -> dict[str, int]:
     """Train the queued algorithms in worker processes, ``jobs`` at a time, each slot pinned to its own cores when
     ``pin`` and they fit (``platform.worker_cores``); a freed slot takes the next algorithm at once. Returns each
     algorithm's exit code."""
