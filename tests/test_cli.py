@@ -298,3 +298,16 @@ def test_env_booleans_from_strings():
         assert params.l1_reward is expected and params.raw_bearing is expected
         _, params = make("half_cheetah", expert_sees_indicator=text)
         assert params.expert_sees_indicator is expected
+
+
+def test_pinned_workers_get_disjoint_cores_or_none():
+    """``--pin``: slot i of side-by-side workers gets its own ``host_devices`` cores, and no pinning when they do not
+    all fit the available cores."""
+    from jaxdeconf.platform import available_cores, worker_cores
+
+    cores = available_cores()
+    assert worker_cores(0, len(cores), 1) == cores[:1]
+    assert worker_cores(len(cores) - 1, len(cores), 1) == cores[-1:]
+    assert worker_cores(0, 1, len(cores)) == cores
+    assert worker_cores(0, len(cores) + 1, 1) is None
+    assert worker_cores(0, len(cores), 2) is None
