@@ -9,7 +9,6 @@ so a 2-device process may use both cores.
 from __future__ import annotations
 
 import argparse
-import os
 import subprocess
 import sys
 import time
@@ -169,7 +168,9 @@ if __name__ == "__main__":  # One process of ``seeds_and_devices`` (nothing may 
     parser.add_argument("--cells", action="store_true", help="time model.cell=gru against mingru instead")
     args = parser.parse_args()
     if args.cells:
-        os.sched_setaffinity(0, {sorted(os.sched_getaffinity(0))[0]})  # One core, before JAX starts.
+        from jaxdeconf.platform import available_cores, pin_to_core
+
+        pin_to_core(available_cores()[0])  # One core, before JAX starts its backend.
         cells()
         sys.exit(0)
     if args.devices is None or args.devices < 1:
