@@ -1,4 +1,5 @@
-"""DAgger's mixture and labels, GAIL's losses and recurrent PPO, on hand values and tiny bandit runs."""
+"""DAgger's mixture and labels, GAIL's losses, absorbing state and recurrent PPO, on hand values and tiny bandit
+runs."""
 
 from __future__ import annotations
 
@@ -8,14 +9,26 @@ import json
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from conftest import assert_rows_close
-from jaxdeconf.envs.base import ActionSpace
+from jaxdeconf.envs.base import ActionSpace, Observation
 
 from jaxdeconf.actors import ExpertActor
 from jaxdeconf.algos.dagger import MixtureActor, mixture_beta
-from jaxdeconf.algos.gail import discriminator_loss, gail_reward, next_step_values
-from jaxdeconf.data import rollout
+from jaxdeconf.algos.gail import (
+    absorbing,
+    absorbing_gae_inputs,
+    discriminator_batch_loss,
+    discriminator_features,
+    discriminator_loss,
+    discriminator_rewards,
+    episode_steps,
+    gail_reward,
+    next_step_values,
+)
+from jaxdeconf.data import Trajectory, rollout
+from jaxdeconf.errors import ConfigError
 from jaxdeconf.losses import soft_nll
 from jaxdeconf.models import log_prob
 from jaxdeconf.ppo import clipped_surrogate, gae, normalize_advantages, squared_value_error
@@ -124,8 +137,8 @@ def test_gae_hand_values():
     np.testing.assert_array_equal(continues, [1, 1, 0])
     np.testing.assert_allclose(gae(rewards, values, next_values, continues, 0.5, 0.5), [0.8875, -0.45, 1.8],
                                rtol=1e-6)
-    # Terminated after step 1 (step 2 invalid): step 1 no longer bootstraps. delta_1 = -1, A_1 = -1,
-    # A_0 = 1.0 + 0.25 * (-1) = 0.75 (step 2's advantage is masked out of every loss).
+    # An episode that does not go on after step 1: step 1 no longer bootstraps. delta_1 = -1, A_1 = -1,
+    # A_0 = 1.0 + 0.25 * (-1) = 0.75.
     next_values, continues = next_step_values(values, jnp.array([True, True, False]))
     np.testing.assert_allclose(gae(rewards * jnp.array([1, 1, 0]), values, next_values, continues, 0.5, 0.5)[:2],
                                [0.75, -1.0], rtol=1e-6)
@@ -158,6 +171,128 @@ def test_discriminator_loss_and_reward_hand_values():
     np.testing.assert_allclose(discriminator_loss(e, mask, g, mask), -2 * np.log(0.75), rtol=1e-6)
     # Reward -log(1 - D): D = 3/4 gives log 4.
     np.testing.assert_allclose(gail_reward(jnp.array(np.log(3.0))), np.log(4.0), rtol=1e-6)
+
+
+def _episodes(valid, imitator):
+    """A hand-built Trajectory [T, B] from its valid mask [T, B] and imitator view [T + 1, B, d]."""
+    valid = jnp.asarray(valid, bool)
+    imitator = jnp.asarray(imitator, jnp.float32)
+    zeros = jnp.zeros(valid.shape, jnp.float32)
+    return Trajectory(obs=Observation(expert=imitator, imitator=imitator, oracle=imitator),
+                      action=jnp.zeros(valid.shape, jnp.int32), reward=zeros, valid=valid,
+                      best_action=jnp.full(valid.shape, -1, jnp.int32), extras={})
+
+
+def _three_episodes(stop=2):
+    """T = 5, B = 3: episode 0 terminates at step ``stop`` (valid up to and including it; the env then freezes its
+    observation), episode 1 runs to the horizon, slot 2 is an empty buffer slot (all zeros, never valid)."""
+    t = np.arange(6, dtype=np.float32)
+    ep0 = np.stack([np.minimum(t, stop + 1), np.ones(6)], -1)  # s_0 .. s_{stop+1}, then s_{stop+1} frozen.
+    ep1 = np.stack([10 + t, -np.ones(6)], -1)
+    obs = np.stack([ep0, ep1, np.zeros((6, 2))], 1)  # [T + 1, B, 2]
+    valid = np.stack([np.arange(5) <= stop, np.ones(5, bool), np.zeros(5, bool)], 1)
+    return _episodes(valid, obs)
+
+
+def _indicator_disc(w, x):
+    """A linear discriminator on the features [..., 3]: logit = x . w."""
+    return x @ w
+
+
+def test_absorbing_features_masks_and_rewards_hand_values():
+    """After termination an episode is in the absorbing state (0, 0 | 1); before it the discriminator reads s' with
+    indicator 0, the terminating step reading the env's terminal observation. Every step of a stored episode is in
+    the discriminator's and the generator's mask, none of an empty slot."""
+    traj = _three_episodes()
+    np.testing.assert_array_equal(absorbing(traj.valid), [[0, 0, 0], [0, 0, 0], [0, 0, 0], [1, 0, 0], [1, 0, 0]])
+    np.testing.assert_array_equal(episode_steps(traj.valid), [[1, 1, 0]] * 5)
+    features = discriminator_features(traj)
+    np.testing.assert_array_equal(features[:, 0], [[1, 1, 0], [2, 1, 0], [3, 1, 0], [0, 0, 1], [0, 0, 1]])
+    np.testing.assert_array_equal(features[:, 1], [[11, -1, 0], [12, -1, 0], [13, -1, 0], [14, -1, 0], [15, -1, 0]])
+    np.testing.assert_array_equal(features[:, 2], np.zeros((5, 3)))
+    # logit = log 3 x indicator: 0 (D = 1/2, reward log 2) at live steps, log 3 (D = 3/4, reward log 4) absorbed.
+    logits = _indicator_disc(jnp.array([0.0, 0.0, np.log(3.0)]), features)
+    l2, l4 = np.log(2.0), np.log(4.0)
+    np.testing.assert_allclose(discriminator_rewards(logits, traj.valid),
+                               [[l2, l2, 0], [l2, l2, 0], [l2, l2, 0], [l4, l2, 0], [l4, l2, 0]], rtol=1e-6)
+
+
+def test_discriminator_loss_with_absorbing_steps_hand_values():
+    """Both sides' absorbing steps count in the BCE, each side averaged over every step of its stored episodes.
+    With logit = log 3 x indicator: a live step costs log 2 on either side; an absorbing step costs the expert
+    -log(3/4) = log(4/3) and the generator -log(1 - 3/4) = log 4.
+    Expert: episode 0 absorbed at step 4 only (9 live steps, 1 absorbing): (9 log 2 + log(4/3)) / 10.
+    Generator: absorbed at steps 3 and 4 (8 live, 2 absorbing): (8 log 2 + 2 log 4) / 10 = 1.2 log 2.
+    The empty slot counts for neither (with it, each mean would be over 15 steps)."""
+    w = jnp.array([0.0, 0.0, np.log(3.0)])
+    expert, gen = _three_episodes(stop=3), _three_episodes(stop=2)
+    expected = (9 * np.log(2.0) + np.log(4 / 3)) / 10 + 1.2 * np.log(2.0)
+    np.testing.assert_allclose(discriminator_batch_loss(_indicator_disc, w, expert, gen), expected, rtol=1e-6)
+
+
+def test_absorbing_gae_hand_values():
+    """gamma = lambda = 0.5. Episode 0 terminates at step 2; its absorbing steps 3 and 4 earn the absorbing reward
+    0.8 each, and their values are exact, whatever the critic said (9): V_4 = 0.8, V_3 = 0.8 + 0.5 x 0.8 = 1.2, so
+    their deltas and advantages are 0.
+    delta_2 = 2 + 0.5 x 1.2 - 0.2 = 2.4             A_2 = 2.4  (target 2.6; ending at termination would give 1.8)
+    delta_1 = 0 + 0.5 x 0.2 - 1 = -0.9              A_1 = -0.9 + 0.25 x 2.4 = -0.3
+    delta_0 = 1 + 0.5 x 1 - 0.5 = 1                 A_0 = 1 + 0.25 x (-0.3) = 0.925
+    Episode 1 runs to the horizon with reward 1 and value 0: delta = 1, A_4 = 1, A_t = 1 + 0.25 A_{t+1}."""
+    rewards = jnp.array([[1.0, 1.0], [0.0, 1.0], [2.0, 1.0], [0.8, 1.0], [0.8, 1.0]])
+    critic = jnp.array([[0.5, 0.0], [1.0, 0.0], [0.2, 0.0], [9.0, 0.0], [9.0, 0.0]])
+    valid = jnp.array([[1, 1], [1, 1], [1, 1], [0, 1], [0, 1]], bool)
+    values, next_values, continues = absorbing_gae_inputs(critic, rewards, valid, 0.5)
+    np.testing.assert_allclose(values[:, 0], [0.5, 1.0, 0.2, 1.2, 0.8], rtol=1e-6)
+    np.testing.assert_array_equal(values[:, 1], critic[:, 1])
+    np.testing.assert_array_equal(continues, [[1, 1]] * 4 + [[0, 0]])
+    adv = gae(rewards, values, next_values, continues, 0.5, 0.5)
+    np.testing.assert_allclose(adv[:, 0], [0.925, -0.3, 2.4, 0.0, 0.0], rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(adv[:, 1], [1.33203125, 1.328125, 1.3125, 1.25, 1.0], rtol=1e-6)
+
+
+@pytest.mark.timeout(300)
+def test_gail_advantages_continue_through_absorbing_state(tiny_config):
+    """GAIL's own ``advantages`` on a bandit episode cut short after step 3 of 10: the absorbing steps earn the
+    discriminator's reward of s_a = (0 | 1), have advantage 0, and the terminating step's target is its reward plus
+    the discounted absorbing rewards to the horizon, sum_{j=0}^{5} gamma^(j+1) r(s_a)."""
+    algo = build_algorithm(tiny_config(), "gail")
+    state = jax.jit(algo.init)(jax.random.key(0))
+    example = algo.example_episode()
+    T = example.horizon
+    obs = jax.random.normal(jax.random.key(1), example.obs.imitator.shape)
+    traj = example.replace(obs=example.obs.replace(imitator=obs), valid=jnp.arange(T)[:, None] <= 3)
+    rewards = np.asarray(jax.jit(algo.rewards)(state, traj))[:, 0]
+    adv, target = (np.asarray(x)[:, 0] for x in jax.jit(algo.advantages)(state, traj))
+    s_a = jnp.zeros(obs.shape[-1] + 1).at[-1].set(1.0)
+    r_a = float(gail_reward(algo.networks[2].apply(state.encoder.params, s_a)))
+    assert r_a > 0.1
+    np.testing.assert_allclose(rewards[4:], r_a, rtol=1e-6)
+    np.testing.assert_allclose(adv[4:], 0.0, atol=1e-5)
+    gamma = algo.config.gail.gamma
+    absorbed_value = sum(gamma ** (j + 1) * r_a for j in range(T - 4))
+    np.testing.assert_allclose(target[3], rewards[3] + absorbed_value, rtol=1e-5)
+
+
+@pytest.mark.timeout(300)
+def test_discriminator_gradient_is_clipped(tiny_config):
+    """The discriminator's Adam sees the gradient clipped to global norm ``gail.disc_clip`` (100 by default): a
+    gradient (3e6, 4e6, 0) of norm 5e6 reaches Adam's first moment, (1 - beta_1) g = 0.1 g, as 0.1 x (60, 80, 0); with
+    disc_clip = 5, as 0.1 x (3, 4, 0); one under the clip passes unchanged."""
+    params = {"w": jnp.zeros(3)}
+
+    def first_moment(algo, grad):
+        tx = algo.disc_tx
+        _, opt_state = tx.update({"w": jnp.asarray(grad)}, tx.init(params), params)
+        return np.asarray(optax.tree_utils.tree_get(opt_state, "mu")["w"])
+
+    algo = build_algorithm(tiny_config(), "gail")
+    assert algo.config.gail.disc_clip == 100.0
+    np.testing.assert_allclose(first_moment(algo, [3e6, 4e6, 0.0]), [6.0, 8.0, 0.0], rtol=1e-5)
+    np.testing.assert_allclose(first_moment(algo, [3.0, 4.0, 0.0]), [0.3, 0.4, 0.0], rtol=1e-5)
+    small = build_algorithm(tiny_config(**{"gail.disc_clip": "5"}), "gail")
+    np.testing.assert_allclose(first_moment(small, [3e6, 4e6, 0.0]), [0.3, 0.4, 0.0], rtol=1e-5)
+    with pytest.raises(ConfigError, match=r"gail\.disc_clip=0"):
+        tiny_config(**{"gail.disc_clip": "0"})
 
 
 @pytest.mark.timeout(300)

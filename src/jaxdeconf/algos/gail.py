@@ -1,17 +1,34 @@
-"""GAIL (Ho and Ermon, 2016) with a recurrent PPO generator.
+"""GAIL (Ho and Ermon, 2016) with a recurrent PPO generator, and DAC's absorbing state (Kostrikov et al., 2019).
 
 The generator is a GRU actor and a GRU critic, each on the imitator's view and the previous action (bc's network).
 Each iteration it rolls out ``gail.rollout_factor`` times the other algorithms' episodes; the discriminator (an MLP on
-s', the reference code's input) takes ``gail.disc_steps`` BCE steps separating expert from
-generator transitions; the generator's reward is -log(1 - D) = softplus(logit); then PPO (clipped surrogate, GAE,
-normalised advantages) runs ``gail.epochs`` epochs over minibatches of whole episodes. Recurrent PPO replays each
-episode from its first step with a zero GRU state, exactly as it was rolled out, so before the first update the
-probability ratio is 1; episodes have a fixed horizon, and steps after termination are masked out of every loss.
+s', the reference code's input) takes ``gail.disc_steps`` BCE steps separating expert from generator transitions,
+behind a global-norm gradient clip of ``gail.disc_clip``; the generator's reward is -log(1 - D) = softplus(logit);
+then PPO (clipped surrogate, GAE, normalised advantages) runs ``gail.epochs`` epochs over minibatches of whole
+episodes. Recurrent PPO replays each episode from its first step with a zero GRU state, exactly as it was rolled out,
+so before the first update the probability ratio is 1.
+
+Early termination (``absorbing``, ``discriminator_features``, ``absorbing_gae_inputs``). Episodes have a fixed horizon
+T and an episode that terminates at step k < T - 1 (``valid`` holds up to and including k) would otherwise collect
+the positive reward -log(1 - D) only while alive: a survival bonus. As in DAC, the episode instead enters an
+absorbing state s_a after its terminal state and stays there to the horizon. The discriminator reads s' with an
+indicator appended: (s_{t+1}, 0) at the valid steps, so the terminating step k reads the env's terminal observation
+s_{k+1}, which plays DAC's terminal state s_T; the absorbing steps k+1 .. T-1, DAC's transition (s_T, ., s_a) and
+then (s_a, ., s_a), read their s' = s_a = (0, 1). The discriminator trains on every step of every stored episode,
+absorbing ones included, for expert and generator alike, so D(s_a) is learned from how often each of them is
+absorbed; the generator is rewarded softplus(D(s_a)) at each absorbing step, and GAE runs through the absorbing steps
+to the horizon instead of stopping at termination, so ending early is worth what s_a is worth. The absorbing state's
+reward is the same at every step and nothing the generator does there changes it, so its value at absorbing step t is
+exact, the discounted sum of its rewards to the horizon, and stands in for the critic's there: absorbing steps then
+have advantage 0, and the terminating step's target bootstraps from that exact value. Absorbing steps stay out of the
+policy's and the critic's losses (their actions change nothing). Empty buffer slots (step 0 not valid) count as no
+episode at all.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -37,6 +54,7 @@ class GailConfig:
     rollout_factor: int = field(4, ">=1")  # Generator episodes per iteration, in units of train.episodes_per_iter.
     disc_steps: int = field(20, ">=1")  # Discriminator gradient steps per iteration.
     disc_lr: float = field(3e-4, ">0")  # Discriminator Adam learning rate.
+    disc_clip: float = field(100.0, ">0")  # Global-norm gradient clip of the discriminator (the paper's table).
     # The generator's reward: "discriminator" (-log(1 - D)) or "env" (the env's own reward: a check that the same PPO
     # learns the task at this budget, separating a weak generator from a weak discriminator).
     reward: str = field("discriminator", GAIL_REWARDS)
@@ -61,18 +79,42 @@ class GailConfig:
                               "per iteration (train.episodes_per_iter x gail.rollout_factor)")
 
 
+def absorbing(valid: jax.Array) -> jax.Array:
+    """The absorbing steps [T, B] bool: those after a stored episode's termination (an empty buffer slot, whose step 0
+    is not valid, has none)."""
+    return valid[:1] & ~valid
+
+
+def episode_steps(valid: jax.Array) -> jax.Array:
+    """Every step of a stored episode [T, B] bool, valid or absorbing (none of an empty buffer slot): the steps the
+    discriminator trains on and the generator is rewarded at."""
+    return jnp.broadcast_to(valid[:1], valid.shape)
+
+
 def discriminator_features(traj: Trajectory) -> jax.Array:
-    """What the discriminator reads at each step [T, B, d]: the next observation s'."""
-    return traj.obs.imitator[1:]
+    """What the discriminator reads at each step [T, B, d + 1]: the next observation s' and an absorbing indicator,
+    (s_{t+1}, 0) at valid steps and the absorbing state (0, 1) after termination."""
+    next_obs = traj.obs.imitator[1:]
+    absorbed = absorbing(traj.valid)[..., None]
+    return jnp.concatenate([jnp.where(absorbed, 0.0, next_obs), absorbed.astype(next_obs.dtype)], axis=-1)
 
 
 def discriminator_loss(
-    expert_logits: jax.Array, expert_valid: jax.Array, gen_logits: jax.Array, gen_valid: jax.Array
+    expert_logits: jax.Array, expert_mask: jax.Array, gen_logits: jax.Array, gen_mask: jax.Array
 ) -> jax.Array:
-    """Binary cross-entropy, expert = 1 and generator = 0, each the mean over its valid steps:
+    """Binary cross-entropy, expert = 1 and generator = 0, each the mean over its masked steps:
     mean(-log D(expert)) + mean(-log(1 - D(generator))) with D = sigmoid(logit)."""
-    return losses.masked_mean(jax.nn.softplus(-expert_logits), expert_valid) + losses.masked_mean(
-        jax.nn.softplus(gen_logits), gen_valid)
+    return losses.masked_mean(jax.nn.softplus(-expert_logits), expert_mask) + losses.masked_mean(
+        jax.nn.softplus(gen_logits), gen_mask)
+
+
+def discriminator_batch_loss(
+    disc_apply: Callable[[Any, jax.Array], jax.Array], params: Any, expert: Trajectory, gen: Trajectory
+) -> jax.Array:
+    """``discriminator_loss`` of ``disc_apply(params, features)`` on batches of expert and generator episodes, over
+    every step of each stored episode, absorbing steps included."""
+    return discriminator_loss(disc_apply(params, discriminator_features(expert)), episode_steps(expert.valid),
+                              disc_apply(params, discriminator_features(gen)), episode_steps(gen.valid))
 
 
 def gail_reward(logits: jax.Array) -> jax.Array:
@@ -80,12 +122,40 @@ def gail_reward(logits: jax.Array) -> jax.Array:
     return jax.nn.softplus(logits)
 
 
-def next_step_values(values: jax.Array, valid: jax.Array) -> tuple[jax.Array, jax.Array]:
+def discriminator_rewards(logits: jax.Array, valid: jax.Array) -> jax.Array:
+    """The generator's reward per step [T, B] from the discriminator's logits on ``discriminator_features``:
+    softplus(logit) at every step of a stored episode, the absorbing state's reward at absorbing steps."""
+    return gail_reward(logits) * episode_steps(valid)
+
+
+def next_step_values(values: jax.Array, goes_on: jax.Array) -> tuple[jax.Array, jax.Array]:
     """(V of the state after step t, whether the episode goes on after step t) for fixed-horizon episodes [T, B]:
-    an episode goes on while its next step is valid, and ends at the horizon."""
+    an episode goes on while its next step is in ``goes_on``, and ends at the horizon."""
     next_values = jnp.concatenate([values[1:], jnp.zeros_like(values[:1])], axis=0)
-    continues = jnp.concatenate([valid[1:], jnp.zeros_like(valid[:1])], axis=0).astype(jnp.float32)
+    continues = jnp.concatenate([goes_on[1:], jnp.zeros_like(goes_on[:1])], axis=0).astype(jnp.float32)
     return next_values, continues
+
+
+def discounted_returns(rewards: jax.Array, gamma: float) -> jax.Array:
+    """sum_{j >= t} gamma^(j - t) r_j to the horizon, per step [T, ...]."""
+
+    def body(ret: jax.Array, reward: jax.Array) -> tuple[jax.Array, jax.Array]:
+        ret = reward + gamma * ret
+        return ret, ret
+
+    _, returns = jax.lax.scan(body, jnp.zeros_like(rewards[0]), rewards, reverse=True)
+    return returns
+
+
+def absorbing_gae_inputs(
+    values: jax.Array, rewards: jax.Array, valid: jax.Array, gamma: float
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """GAE's (values, next values, continues) [T, B] with the absorbing state going on to the horizon: each absorbing
+    step's value is the exact discounted sum of the rewards from there to the horizon (all of them the absorbing
+    state's), in place of the critic's, and every step of a stored episode but the last continues."""
+    values = jnp.where(absorbing(valid), discounted_returns(rewards, gamma), values)
+    next_values, continues = next_step_values(values, episode_steps(valid))
+    return values, next_values, continues
 
 
 @dataclasses.dataclass(frozen=True)
@@ -119,8 +189,9 @@ class GAIL(Algorithm):
 
     @property
     def disc_tx(self) -> optax.GradientTransformation:
-        """Discriminator optimiser."""
-        return optax.adam(self.config.gail.disc_lr)
+        """Discriminator optimiser: Adam behind a global-norm clip."""
+        g = self.config.gail
+        return optax.chain(optax.clip_by_global_norm(g.disc_clip), optax.adam(g.disc_lr))
 
     @property
     def generator_episodes(self) -> int:
@@ -135,7 +206,7 @@ class GAIL(Algorithm):
         obs, act = jnp.zeros((1, size)), jnp.zeros((1, self.space.feature_size))
         gen = {"actor": actor.init(k_actor, obs, act), "critic": critic.init(k_critic, obs, act)}
         example = self.example_episode()
-        disc_params = disc.init(k_disc, self.disc_features(example)[0])
+        disc_params = disc.init(k_disc, discriminator_features(example)[0])
         tagged = Tagged(traj=example, tags={"log_prob": jnp.zeros(example.valid.shape, jnp.float32)})
         return TrainState(
             policy=Learner(gen, self.policy_tx.init(gen)),
@@ -145,10 +216,6 @@ class GAIL(Algorithm):
             key=key,
             iteration=jnp.zeros((), jnp.int32),
         )
-
-    def disc_features(self, traj: Trajectory) -> jax.Array:
-        """``discriminator_features`` of ``traj``."""
-        return discriminator_features(traj)
 
     def actor(self) -> RecurrentActor:
         """The GRU actor on the imitator's view."""
@@ -198,24 +265,25 @@ class GAIL(Algorithm):
         return state.replace(encoder=learner), {"disc_loss": jnp.mean(loss)}
 
     def _disc_loss(self, params: Any, expert: Trajectory, gen: Trajectory) -> jax.Array:
-        """``discriminator_loss`` on two batches."""
-        disc = self.networks[2]
-        return discriminator_loss(disc.apply(params, self.disc_features(expert)), expert.valid,
-                                  disc.apply(params, self.disc_features(gen)), gen.valid)
+        """``discriminator_batch_loss`` on two batches."""
+        return discriminator_batch_loss(self.networks[2].apply, params, expert, gen)
 
     def rewards(self, state: TrainState, traj: Trajectory) -> jax.Array:
-        """The generator's reward per step [T, B]: the discriminator's, or the env's with ``gail.reward=env``."""
+        """The generator's reward per step [T, B]: the discriminator's (absorbing steps included), or the env's with
+        ``gail.reward=env`` (zero after termination)."""
         if self.config.gail.reward == "env":
             return traj.reward
-        logits = self.networks[2].apply(state.encoder.params, self.disc_features(traj))
-        return gail_reward(logits) * traj.valid
+        logits = self.networks[2].apply(state.encoder.params, discriminator_features(traj))
+        return discriminator_rewards(logits, traj.valid)
 
     def advantages(self, state: TrainState, traj: Trajectory) -> tuple[jax.Array, jax.Array]:
-        """GAE advantages and value targets [T, B] of the generator's rollouts under the current critic."""
+        """GAE advantages and value targets [T, B] of the generator's rollouts under the current critic, the absorbing
+        state going on to the horizon (``absorbing_gae_inputs``)."""
         g = self.config.gail
-        values = self.values(state.policy.params, traj)
-        next_values, continues = next_step_values(values, traj.valid)
-        adv = gae(self.rewards(state, traj), values, next_values, continues, g.gamma, g.gae_lambda)
+        rewards = self.rewards(state, traj)
+        values, next_values, continues = absorbing_gae_inputs(
+            self.values(state.policy.params, traj), rewards, traj.valid, g.gamma)
+        adv = gae(rewards, values, next_values, continues, g.gamma, g.gae_lambda)
         return adv, adv + values
 
     def ppo_loss(self, gen_params: Any, batch: Tagged) -> tuple[jax.Array, dict[str, jax.Array]]:
