@@ -108,7 +108,7 @@ class Environment:
     def obs_groups(self, params: Any) -> tuple[ObsGroup, ...]:
         """The imitator's view as consecutive groups, in order (default: one group under ``obs_likelihood``). An env
         whose θ shows only in part of the view (a cue beside a θ-free body) declares them, so the decoder's loss can
-        weigh each group (``model.decoder_weighting``)."""
+        weigh each group (``dil.decoder_weighting``)."""
         return (ObsGroup("all", self.obs_sizes(params).imitator, self.obs_likelihood),)
 
     def reset(self, key: jax.Array, params: Any) -> tuple[Any, Observation]:

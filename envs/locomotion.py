@@ -239,16 +239,9 @@ class HalfCheetah(BraxConfounded):
     brax_name = "halfcheetah"
     presets: ClassVar[dict[str, dict[str, Any]]] = {
         # Reduced for a 2-core CPU: 200-step episodes (the paper's are 1000), small nets, 40 iterations of 8 episodes.
-        # The cue is scored as a Gaussian like the body. q_phi is the belief-conditioned factor encoder ("filter"),
-        # and pi_eta is cloned on matched codes (q_phi's final codes of the imitator's own episodes, weighed by the
-        # decoder's likelihood of the expert episode), the codes the policy reads online; 64 of the 128 stored codes
-        # bound the matching's cost (docs/ablations.md).
-        "cpu": {**locomotion_cpu(horizon=200, prediction_steps=10, anneal=8),  # 63 of 300 iterations, scaled to 40.
-                "model.group_likelihood": "gaussian", "model.encoder": "filter", "model.policy_latent": "matched",
-                "model.match_codes": 64},
+        "cpu": locomotion_cpu(horizon=200, prediction_steps=10, anneal=8),  # 63 of 300 iterations, scaled to 40.
         # The paper's configuration (for a GPU): GRU 500, latent 64, K = 10, 2000 episodes (2e6 transitions).
-        "paper": {**locomotion_paper(latent=64, prediction_steps=10, buffer_episodes=2000, anneal=63),
-                  "model.group_likelihood": "gaussian"},
+        "paper": locomotion_paper(latent=64, prediction_steps=10, buffer_episodes=2000, anneal=63),
     }
     # The XML asks for Newton with 4 iterations of up to 50 line-search steps. 8 steps give the same trajectories
     # (identical max |qd| over 32 random-action episodes of 1000 steps) 3.8x faster on this CPU; Brax's ant on MJX
@@ -343,13 +336,9 @@ class AntGoal(BraxConfounded):
     name = "ant_goal"
     brax_name = "ant"
     presets: ClassVar[dict[str, dict[str, Any]]] = {
-        # Reduced for a 2-core CPU: small nets, K = 10 (the paper's is 50), 40 iterations of 8 episodes. The decoder
-        # weighs the body and the 3-dimensional cue equally (the reference code's per-key weighting); pi_eta reads
-        # θ-hat beside the observation at its input, where the goal minus the torso's position is one linear layer
-        # away; q_phi is the product-of-factors encoder, whose belief cannot fade once the ant stands at its goal
-        # (docs/ablations.md). DAgger's beta anneals inside the warm-up, as in the reference code.
-        "cpu": {**locomotion_cpu(horizon=200, prediction_steps=10, anneal=5), "model.decoder_weighting": "group_mean",
-                "model.policy_fusion": "early", "model.encoder": "evidence"},
+        # Reduced for a 2-core CPU: small nets, K = 10 (the paper's is 50), 40 iterations of 8 episodes. DAgger's
+        # beta anneals inside the warm-up, as in the reference code.
+        "cpu": locomotion_cpu(horizon=200, prediction_steps=10, anneal=5),
         # The paper's configuration (for a GPU): latent 8, K = 50; replay capped at 2000 episodes (4e5 transitions,
         # against the reference code's 2e6) so that a seed's buffers fit next to others on one GPU.
         "paper": locomotion_paper(latent=8, prediction_steps=50, buffer_episodes=2000, anneal=20),

@@ -203,7 +203,7 @@ def test_offline_elbo_scores_p_psi_as_q_on_elbo_does():
     quarter (on a loss that summed every dimension whatever the setting, both would be equal)."""
     out = {}
     for weighting in ("sum", "group_mean"):
-        config = build(CARTPOLE, "cpu", ("dil_offline",), 1, {**TINY, "model.decoder_weighting": weighting})
+        config = build(CARTPOLE, "cpu", ("dil_offline",), 1, {**TINY, "dil.decoder_weighting": weighting})
         algo = make_algorithm("dil_offline", *_cartpole(), config)
         state = algo.init(jax.random.key(0))
         state, _ = algo.collect_expert(state, jax.random.key(1))

@@ -165,6 +165,19 @@ def test_presets_live_with_their_env_and_hold_no_seeds(env):
         build(env, name, ("bc",), 1, {})  # Every preset resolves and validates.
 
 
+def test_each_deconfounded_method_is_one_configuration_on_every_env_and_preset():
+    """``dil`` (the paper's) and ``dil_plus`` each read their networks' inputs the same way on every env and preset:
+    a preset sets sizes and budgets, never a method's section, so the resolved sections equal their defaults."""
+    from jaxdeconf.algos.dil import DilConfig
+    from jaxdeconf.algos.dil_plus import DilPlusConfig
+
+    assert vars(DilConfig()) != vars(DilPlusConfig())  # Two methods, not one under two names.
+    for env in (*ENVS, CARTPOLE):
+        for preset in env_presets(env):
+            config = build(env, preset, ("dil", "dil_plus"), 1, {})
+            assert (config.dil, config.dil_plus) == (DilConfig(), DilPlusConfig()), (env, preset)
+
+
 def test_an_env_without_presets_is_refused_by_name(tmp_path):
     """A user's env that declares no presets gets a one-line error naming it, never another env's presets."""
     (tmp_path / "bare.py").write_text(textwrap.dedent('''

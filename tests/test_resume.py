@@ -24,7 +24,7 @@ def _rows(folder):
     return [json.loads(line) for line in (folder / "metrics.jsonl").read_text().splitlines()]
 
 
-@pytest.mark.parametrize("overrides", [{}, {"model.policy_latent": "matched"}], ids=["plain", "matched"])
+@pytest.mark.parametrize("overrides", [{}, {"dil.policy_latent": "matched"}], ids=["plain", "matched"])
 def test_interrupted_run_resumes_exactly(tmp_path, tiny_config, monkeypatch, overrides):
     """Resumed from its checkpoint, a run is the uninterrupted one (also where the policy's latents are matched
     against the own buffer, which the checkpoint must restore whole)."""

@@ -103,7 +103,7 @@ def test_matched_latents_equal_a_loop_over_codes_and_episodes(tiny_config):
     weighed by exp(-summed decoder NLL) of the episode under each code, here recomputed one (code, episode) pair at
     a time; every step of an episode gets the same θ-hat, and it differs across episodes. ``match_codes`` keeps that
     many evenly spaced slots as codes, of which only filled ones count."""
-    algo = build_algorithm(tiny_config(**{"model.policy_latent": "matched"}), "dil")
+    algo = build_algorithm(tiny_config(**{"dil.policy_latent": "matched"}), "dil")
     state = algo.init(jax.random.key(0))
     state, _ = algo.collect_expert(state, jax.random.key(1))
     state, _ = algo.collect_explore(state, jax.random.key(2))
@@ -121,7 +121,7 @@ def test_matched_latents_equal_a_loop_over_codes_and_episodes(tiny_config):
         w = np.exp(log_lik - log_lik.max())
         np.testing.assert_allclose(got[0, b], (w / w.sum()) @ codes[: int(own.size)], rtol=1e-4, atol=1e-5)
     assert algo.policy_context(state, jax.random.key(3)) is not None  # Encoded once per iteration.
-    two = build_algorithm(tiny_config(**{"model.policy_latent": "matched", "model.match_codes": "2"}), "dil")
+    two = build_algorithm(tiny_config(**{"dil.policy_latent": "matched", "dil.match_codes": "2"}), "dil")
     only = np.asarray(two.training_context(state, data))  # Slots 0 and 4 of 8; 4 episodes stored: slot 0 alone.
     np.testing.assert_allclose(only, np.broadcast_to(codes[0], only.shape), rtol=1e-5, atol=1e-6)
 

@@ -16,12 +16,7 @@ from typing import Any
 from jaxdeconf.envs import parse_bool
 from jaxdeconf.errors import ConfigError
 
-ENCODERS = ("gru", "evidence", "filter")
 CELLS = ("gru", "mingru")
-WEIGHTINGS = ("sum", "group_mean")  # losses.WEIGHTINGS (not imported: this module stays free of JAX).
-GROUP_LIKELIHOODS = ("declared", "gaussian")
-POLICY_LATENTS = ("current", "matched")
-FUSIONS = ("late", "early")
 
 #: Every integer field passes through int32 inside the compiled programs (shapes, counters, seeds).
 INT32_MAX = 2**31 - 1
@@ -37,41 +32,15 @@ def field(default: Any, allowed: str | tuple[str, ...]) -> Any:
 
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
-    """Network sizes (static: they fix shapes) and how dil's networks read their inputs."""
+    """Network sizes (static: they fix shapes) and the recurrent cell. How the deconfounded algorithms' networks read
+    their inputs is each one's own section (``dil``, ``dil_plus``)."""
 
     width: int = field(128, ">=1")  # Hidden width of every MLP block (Linear -> LayerNorm -> ELU, two blocks).
     action_embed: int = field(32, ">=1")  # Size of the previous-action embedding fed to the GRUs.
     gru: int = field(500, ">=1")  # GRU hidden size of the inference model q_phi.
     bc_gru: int = field(500, ">=1")  # GRU hidden size of the recurrent naive-BC / oracle / DAgger policy.
     latent: int = field(64, ">=1")  # Latent size of theta-hat.
-    # With a Gaussian observation likelihood, also feed q_phi the standardised change (s_t - s_{t-1}) / delta_scale
-    # that the decoder scores: the evidence about theta is in transitions, and small ones (an engine's kick) are a few
-    # percent of an observation's spread, hard for a small GRU to difference out of consecutive inputs.
-    encoder_deltas: bool = True
-    # q_phi's recurrence: "gru" (the paper's), "evidence" (a product of per-step Gaussian factors, whose belief cannot
-    # fade once the evidence is in) or "filter" (the same product with each factor read off the step and the belief
-    # so far: assumed-density filtering). models.py has the three.
-    encoder: str = field("gru", ENCODERS)
     cell: str = field("gru", CELLS)  # Cell of the GRU q_phi and the recurrent policies: "gru" (paper's), "mingru".
-    # How the decoder weighs the groups of the imitator's view an env declares (``Environment.obs_groups``: e.g. the
-    # body and the cue): "sum" adds every dimension's NLL, "group_mean" averages within each group and adds the groups
-    # (the reference code's per-key MSE). One-group envs (bandit, LunarLander) are the same under both.
-    decoder_weighting: str = field("sum", WEIGHTINGS)
-    # Each group's likelihood: "declared" (the env's: e.g. Bernoulli for a ±1 indicator) or "gaussian" for all.
-    group_likelihood: str = field("declared", GROUP_LIKELIHOODS)
-    # The θ-hat dil's policy is cloned on, at every step of an expert episode: "current" (q_phi's posterior mean at
-    # that step, the paper's) or "matched" (the posterior mean over the final beliefs of the imitator's own stored
-    # episodes, each weighed by the decoder's likelihood of the expert episode: θ coded as q_phi codes it on the
-    # imitator's own episodes, where the policy reads it online). Online the policy reads the current posterior mean.
-    policy_latent: str = field("current", POLICY_LATENTS)
-    # ``matched`` only: how many of the own buffer's slots are codes (evenly spaced, so the codes span the buffer's
-    # ages; at most the buffer's capacity); 0 for every slot. Its cost per iteration is expert-buffer capacity x codes
-    # x horizon decoder steps.
-    match_codes: int = field(0, ">=0")
-    # Where dil's policy reads θ-hat (``models.LatentPolicy``): "late", after the observation's own MLP (the
-    # reference code's), or "early", beside the observation at the input, where the oracle's θ sits in its view.
-    # dil_offline's pi_eta is the same network and follows this too.
-    policy_fusion: str = field("late", FUSIONS)
 
 
 @dataclasses.dataclass(frozen=True)

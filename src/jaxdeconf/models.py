@@ -215,7 +215,7 @@ class Encoder(StepInput):
 
 class EvidenceEncoder(StepInput):
     """q_phi as a product of Gaussian factors, one per step, with the prior N(0, I) (PEARL's encoder, Rakelly et al.
-    2019): each (s_t, a_{t-1}) — with ``model.encoder_deltas`` also the change s_t - s_{t-1}, so a whole transition —
+    2019): each (s_t, a_{t-1}) — with ``dil.encoder_deltas`` also the change s_t - s_{t-1}, so a whole transition —
     gives a factor of mean m_t and precision p_t, and the posterior after t steps has precision 1 + sum p and mean
     sum(p m) / (1 + sum p).
 
@@ -289,7 +289,7 @@ class FilterEncoder(EvidenceEncoder):
 def make_encoder(
     kind: str, width: int, action_embed: int, gru: int, latent: int, cell: str = "gru"
 ) -> Encoder | EvidenceEncoder:
-    """q_phi by ``model.encoder``'s name: "gru" (hidden size ``gru``, its cell ``cell``: "gru" or "mingru"),
+    """q_phi by ``dil.encoder``'s name: "gru" (hidden size ``gru``, its cell ``cell``: "gru" or "mingru"),
     "evidence" or "filter"."""
     if kind == "gru":
         return Encoder(width, action_embed, gru, latent, cell)

@@ -29,6 +29,7 @@ REGISTRY: dict[str, Entry] = {
     "bc": Entry("jaxdeconf.algos.bc", "BehaviourCloning", {"view": "imitator"}, "tab:red"),
     "oracle": Entry("jaxdeconf.algos.bc", "BehaviourCloning", {"view": "oracle"}, "tab:green"),
     "dil": Entry("jaxdeconf.algos.dil", "Deconfounded", {}, "tab:blue"),
+    "dil_plus": Entry("jaxdeconf.algos.dil_plus", "DeconfoundedPlus", {}, "tab:brown"),
     "dil_offline": Entry("jaxdeconf.algos.dil_offline", "DeconfoundedOffline", {}, "tab:cyan"),
     "dagger": Entry("jaxdeconf.algos.dagger", "DAgger", {}, "tab:purple"),
     "gail": Entry("jaxdeconf.algos.gail", "GAIL", {}, "tab:orange"),

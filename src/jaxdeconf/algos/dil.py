@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -21,7 +21,7 @@ from jaxdeconf.algos.base import (
     make_optimizer,
     observation_delta_scale,
 )
-from jaxdeconf.config import Config
+from jaxdeconf.config import Config, field
 from jaxdeconf.data import Trajectory, buffer_add, buffer_sample, rollout
 from jaxdeconf.envs import ObsGroup
 from jaxdeconf.models import (
@@ -34,16 +34,58 @@ from jaxdeconf.models import (
     make_encoder,
 )
 
+ENCODERS = ("gru", "evidence", "filter")
+WEIGHTINGS = losses.WEIGHTINGS
+GROUP_LIKELIHOODS = ("declared", "gaussian")
+POLICY_LATENTS = ("current", "matched")
+FUSIONS = ("late", "early")
+
+
+@dataclasses.dataclass(frozen=True)
+class DilConfig:
+    """How the deconfounded imitator's networks read their inputs. The defaults are the paper's Algorithm 1 with the
+    reference code's inputs and decoder weighting; presets never set these (only sizes and budgets differ by env)."""
+
+    # Also feed q_phi the standardised change (s_t - s_{t-1}) / delta_scale that the decoder scores (Gaussian
+    # likelihoods only): the evidence about theta is in transitions. Off is the paper's input (s_t, a_{t-1}).
+    encoder_deltas: bool = False
+    # q_phi's recurrence: "gru" (the paper's), "evidence" (a product of per-step Gaussian factors, whose belief cannot
+    # fade once the evidence is in) or "filter" (the same product with each factor read off the step and the belief
+    # so far: assumed-density filtering). models.py has the three.
+    encoder: str = field("gru", ENCODERS)
+    # How the decoder weighs the groups of the imitator's view an env declares (``Environment.obs_groups``: e.g. the
+    # body and the cue): "group_mean" averages within each group and adds the groups (the reference code's per-key
+    # MSE), "sum" adds every dimension's NLL. One-group envs (bandit, LunarLander) differ only in scale.
+    decoder_weighting: str = field("group_mean", WEIGHTINGS)
+    # Each group's likelihood: "declared" (the env's: e.g. Bernoulli for a ±1 indicator) or "gaussian" for all.
+    group_likelihood: str = field("declared", GROUP_LIKELIHOODS)
+    # The θ-hat the policy is cloned on, at every step of an expert episode: "current" (q_phi's posterior mean at
+    # that step, the paper's) or "matched" (the posterior mean over the final beliefs of the imitator's own stored
+    # episodes, each weighed by the decoder's likelihood of the expert episode: θ coded as q_phi codes it on the
+    # imitator's own episodes, where the policy reads it online). Online the policy reads the current posterior mean.
+    policy_latent: str = field("current", POLICY_LATENTS)
+    # ``matched`` only: how many of the own buffer's slots are codes (evenly spaced, so the codes span the buffer's
+    # ages; at most the buffer's capacity); 0 for every slot. Its cost per iteration is expert-buffer capacity x codes
+    # x horizon decoder steps.
+    match_codes: int = field(0, ">=0")
+    # Where the policy reads θ-hat (``models.LatentPolicy``): "late", after the observation's own MLP (the reference
+    # code's), or "early", beside the observation at the input, where the oracle's θ sits in its view.
+    policy_fusion: str = field("late", FUSIONS)
+
 
 @dataclasses.dataclass(frozen=True)
 class Deconfounded(Algorithm):
     """Algorithm 1: an inference model trained by the sequential ELBO on the imitator's own episodes, and a
     latent-conditional policy cloned on expert episodes with θ-hat = the posterior mean at the current step (or, with
-    ``model.policy_latent=matched``, a code of the imitator's own episodes matched by the decoder's likelihood).
+    ``dil.policy_latent=matched``, a code of the imitator's own episodes matched by the decoder's likelihood).
 
     For Gaussian observation likelihoods the decoder predicts standardised one-step changes of the observation; the
     per-dimension scale is fixed once from expert data (``delta_scale``), as the paper normalises from expert data.
     """
+
+    settings = ("dil", DilConfig)
+    #: The section of ``DilConfig`` fields this class reads (a subclass with its own settings may keep reading it).
+    method_section: ClassVar[str] = "dil"
 
     @classmethod
     def stored_episodes(cls, config: Config) -> int:
@@ -55,9 +97,14 @@ class Deconfounded(Algorithm):
                            if self.env.obs_likelihood == "gaussian" else None)
 
     @property
+    def method(self) -> DilConfig:
+        """How the networks read their inputs (the ``method_section`` of the config)."""
+        return getattr(self.config, self.method_section)
+
+    @property
     def encoder_scale(self) -> Any:
-        """The delta scale when the encoder reads standardised changes (``model.encoder_deltas``), else None."""
-        return self.delta_scale if self.config.model.encoder_deltas else None
+        """The delta scale when the encoder reads standardised changes (``encoder_deltas``), else None."""
+        return self.delta_scale if self.method.encoder_deltas else None
 
     def encoder_obs(self, obs: jax.Array) -> jax.Array:
         """What q_phi reads along a sequence obs [T, B, d]: obs, or ``losses.transition_inputs``."""
@@ -67,23 +114,24 @@ class Deconfounded(Algorithm):
     @property
     def networks(self) -> tuple[Encoder | EvidenceEncoder, Decoder, LatentPolicy]:
         """Encoder q_phi, decoder p_psi and policy pi_eta."""
-        m = self.config.model
+        m, method = self.config.model, self.method
         size = self.env.obs_sizes(self.env_params).imitator
         return (
-            make_encoder(m.encoder, m.width, m.action_embed, m.gru, m.latent, m.cell),
+            make_encoder(method.encoder, m.width, m.action_embed, m.gru, m.latent, m.cell),
             Decoder(m.width, m.action_embed, size),
-            LatentPolicy(m.width, head_size(self.space), m.policy_fusion),
+            LatentPolicy(m.width, head_size(self.space), method.policy_fusion),
         )
 
     @property
     def decoder_groups(self) -> tuple[ObsGroup, ...] | None:
-        """The env's groups of the imitator's view, each with its likelihood (``model.group_likelihood``); None when
-        they change nothing (summed, all under the env's likelihood), so the decoder's loss is the one-family one."""
+        """The env's groups of the imitator's view, each with its likelihood (``group_likelihood``); None when
+        they change nothing (all under the env's likelihood, and summed or each of one dimension), so the decoder's
+        loss is the one-family one."""
         groups = self.env.obs_groups(self.env_params)
-        if self.config.model.group_likelihood == "gaussian":
+        if self.method.group_likelihood == "gaussian":
             groups = tuple(dataclasses.replace(g, likelihood="gaussian") for g in groups)
-        if self.config.model.decoder_weighting == "sum" and all(
-                g.likelihood == self.env.obs_likelihood for g in groups):
+        same_family = all(g.likelihood == self.env.obs_likelihood for g in groups)
+        if same_family and (self.method.decoder_weighting == "sum" or all(g.size == 1 for g in groups)):
             return None
         return groups
 
@@ -147,7 +195,7 @@ class Deconfounded(Algorithm):
         """How the decoder's predictions are scored (``losses.prediction_nll``'s keywords), shared by the ELBO and
         ``dynamics_nll``."""
         return {"likelihood": self.env.obs_likelihood, "delta_scale": self.delta_scale, "groups": self.decoder_groups,
-                "weighting": self.config.model.decoder_weighting}
+                "weighting": self.method.decoder_weighting}
 
     def update_encoder(self, state: TrainState, key: jax.Array) -> tuple[TrainState, dict[str, jax.Array]]:
         """``encoder_steps`` ELBO steps on batches of whole exploration episodes."""
@@ -183,22 +231,22 @@ class Deconfounded(Algorithm):
         own episode, too costly per batch)."""
         del key  # Unused: the latents are posterior means, no draw.
         t = self.config.train
-        if self.config.model.policy_latent == "current" and t.buffer_episodes > t.batch_size * t.policy_steps:
+        if self.method.policy_latent == "current" and t.buffer_episodes > t.batch_size * t.policy_steps:
             return None
         return self.training_context(state, state.expert_buffer.data)
 
     def training_context(self, state: TrainState, traj: Trajectory) -> jax.Array:
-        """The θ-hat [T, B, L] the policy is cloned on along expert episodes ``traj`` (``model.policy_latent``)."""
-        if self.config.model.policy_latent == "matched":
+        """The θ-hat [T, B, L] the policy is cloned on along expert episodes ``traj`` (``policy_latent``)."""
+        if self.method.policy_latent == "matched":
             return self.matched_latents(state, traj)
         return self.posterior_means(state, traj)
 
     def matched_latents(self, state: TrainState, traj: Trajectory) -> jax.Array:
-        """θ-hat [T, B, L] for ``model.policy_latent=matched``: per expert episode, the posterior mean over the final
-        codes of the imitator's own stored episodes (``model.match_codes`` of its slots) under the decoder's likelihood
+        """θ-hat [T, B, L] for ``policy_latent=matched``: per expert episode, the posterior mean over the final
+        codes of the imitator's own stored episodes (``match_codes`` of its slots) under the decoder's likelihood
         of the expert episode (``decoder_posterior_mean``), so the policy is cloned on codes from where q_phi's online
         beliefs live."""
-        own, wanted = state.explore_buffer, self.config.model.match_codes
+        own, wanted = state.explore_buffer, self.method.match_codes
         count = min(wanted, own.capacity) if wanted else own.capacity
         slots = jnp.arange(count) * own.capacity // count  # Evenly spaced over the buffer.
         data = jax.tree.map(lambda x: x[:, slots], own.data)
