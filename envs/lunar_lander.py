@@ -25,7 +25,7 @@ The confounding: θ ~ Bernoulli(1/2) picks the identity or a permutation swappin
 The expert sees the 8-d state plus θ; the imitator the 8-d state; the oracle the imitator's view plus θ. Episodes
 last ``horizon`` = 500 steps; after termination the state freezes and rewards are masked by ``valid``.
 
-The expert is a θ-conditioned PPO policy trained by ``experiments/train_lunar_expert.py`` and shipped as
+The expert is a θ-conditioned PPO policy trained by ``experiments/train_expert.py`` and shipped as
 ``envs/experts/lunar_lander.msgpack``; ``expert_probs`` runs it.
 """
 

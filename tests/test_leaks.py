@@ -20,8 +20,9 @@ from jaxdeconf.data import Buffer, Tagged, Trajectory
 from jaxdeconf.train import build_algorithm
 
 # Measured on the 2-core machine (one run of the file): dil 63 s, dil_offline 28 s, gail 28 s, bc 26 s, oracle 25 s,
-# dagger 9 s; dil, over 30 s, runs in the slow tier (dil_offline's update covers its encoder and latent policy).
-ALGOS = [pytest.param(name, marks=pytest.mark.slow) if name == "dil" else name for name in algos.names()]
+# dagger 9 s; dil and dil_plus, over 30 s each, run in the slow tier (dil_offline's update covers the encoder and
+# latent policy they share).
+ALGOS = [pytest.param(name, marks=pytest.mark.slow) if name in ("dil", "dil_plus") else name for name in algos.names()]
 
 
 def scrambled_trajectory(traj: Trajectory, key: jax.Array) -> Trajectory:

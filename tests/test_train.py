@@ -31,7 +31,7 @@ def test_same_seed_same_metrics(tmp_path, tiny_config, algo):
     assert any("eval_return" in r for r in _rows(tmp_path / "a"))
 
 
-@pytest.mark.slow  # The default tier checks the same seed-vmapped loop with dagger and gail (test_baselines.py).
+@pytest.mark.slow  # The default tier checks the same seed-vmapped loop with dagger (test_baselines.py; gail is slow).
 def test_seed_of_sweep_equals_single_run(tmp_path, tiny_config):
     sweep = tiny_config(seeds=3)
     single = dataclasses.replace(tiny_config(seeds=1), seed_start=2)

@@ -319,7 +319,7 @@ def figure1(
     out: pathlib.Path, results: pathlib.Path | None = None, episodes: int = 8, count_episodes: int = 2000, seed: int = 0
 ) -> dict[str, Any]:
     """Figure 1's rollout rasters: actions per step of the expert, interventional and conditional policies, and of
-    the trained ``bc`` and ``dil`` of a results folder (when given), the correct arm in green.
+    the trained ``bc``, ``dil`` and ``dil_plus`` of a results folder (when given), the correct arm in green.
 
     The same key drives every policy, so the rows share θ. A few rows can flatter or wrong a policy, so each label
     also gives its best-arm count per 100 steps over ``count_episodes`` episodes. Writes ``figure1.png``; returns the
@@ -334,7 +334,7 @@ def figure1(
         "conditional": (env, params, ReferenceActor("conditional", params), None),
     }
     if results is not None:
-        for algo in ("bc", "dil"):
+        for algo in ("bc", "dil", "dil_plus"):
             if (results / algo / "checkpoints").exists():
                 policies[f"{algo} (trained)"] = learned_actor(results, algo)
     key, key_count = jax.random.split(jax.random.key(seed))

@@ -303,7 +303,7 @@ def run_figure1(ctx: Context) -> dict[str, Any]:
 def section_figure1(ctx: Context, n: dict[str, Any]) -> str:
     counts = ", ".join(f"{name} {count:.1f}" for name, count in n.items())
     return ("The paper's Figure 1: actions per step of five rollouts per policy, the correct arm in green; the "
-            f"trained imitators are the bandit part's seed 0. Best-arm counts over 2000 episodes: {counts}.\n\n"
+            f"trained imitators are the bandit part's first seed. Best-arm counts over 2000 episodes: {counts}.\n\n"
             + _link(ctx, ctx.part_dir("figure1") / "figure1.png", "Figure 1 rollouts"))
 
 
