@@ -1,5 +1,7 @@
 """dil_offline (Algorithm 3): the offline ELBO on hand values and against a plain loop, synthetic rollouts that never
-step the environment, the frozen dynamics model under q_on's steps, and a short learning check on the bandit."""
+step the environment, the frozen dynamics model under q_on's steps, a short learning check on the bandit, and the
+synthetic episodes of the box-action Brax envs (uniform exploration, starts and masks of expert episodes, p_psi's
+mean steps)."""
 
 from __future__ import annotations
 
@@ -258,15 +260,70 @@ def test_bandit_learns_at_a_reduced_budget(tmp_path):
     assert np.mean(returns) >= BOUND, returns
 
 
+def _uniform_box_checks(action: np.ndarray) -> None:
+    """``action`` [T, B, A] holds independent draws of U[-1, 1]: every value in the box; per dimension, the mean (0,
+    variance 1/3 per draw) and the mean square (1/3, variance 1/5 - 1/9 = 4/45 per draw) within 4.5 standard errors;
+    the pooled draws' ten equal-width bins each within 4.5 binomial standard errors of 1/10; the correlation of two
+    dimensions, and of one dimension at consecutive steps, within 4.5 / sqrt(N) of 0."""
+    T, B, A = action.shape
+    n = T * B  # Draws per dimension.
+    assert action.min() >= -1.0 and action.max() <= 1.0
+    flat = action.reshape(n, A)
+    np.testing.assert_array_less(np.abs(flat.mean(0)), 4.5 * np.sqrt(1 / 3 / n))
+    np.testing.assert_array_less(np.abs((flat**2).mean(0) - 1 / 3), 4.5 * np.sqrt(4 / 45 / n))
+    share = np.histogram(action, bins=10, range=(-1.0, 1.0))[0] / action.size
+    np.testing.assert_array_less(np.abs(share - 0.1), 4.5 * np.sqrt(0.1 * 0.9 / action.size))
+    across = np.corrcoef(flat, rowvar=False)[~np.eye(A, dtype=bool)]
+    along = [np.corrcoef(action[:-1, :, k].ravel(), action[1:, :, k].ravel())[0, 1] for k in range(A)]
+    np.testing.assert_array_less(np.abs(across), 4.5 / np.sqrt(n))
+    np.testing.assert_array_less(np.abs(along), 4.5 / np.sqrt(n - B))
+
+
+#: Lengths given to the four stored expert episodes, so a synthetic episode's mask names the episode it started from.
+LENGTHS = (20, 13, 7, 1)
+
+
 # Brax compiles slowly on a CPU (minutes per program), so the box-action envs run in the slow tier.
 @pytest.mark.slow
-@pytest.mark.timeout(1800)
+@pytest.mark.timeout(900)
 @pytest.mark.parametrize("env", ["half_cheetah", "ant_goal"])
-def test_trains_on_box_action_envs(tmp_path, env):
-    """Uniform exploration over the box, Gaussian dynamics and standardised views: every loss finite after warm-up."""
-    config = build(env, "cpu", ("dil_offline",), 1, {**TINY, "env.horizon": "20", "train.prediction_steps": "3"})
-    train_algorithm(config, "dil_offline", tmp_path / "dil_offline", progress=False)
-    rows = load_metrics(tmp_path, "dil_offline")
-    after = [r for r in rows if r["iteration"] > config.train.warmup]
-    assert after and all(np.isfinite(v) for r in after for v in r.values() if isinstance(v, float))
-    assert any("eval_return" in r for r in rows)
+def test_synthetic_episodes_on_box_action_envs(env):
+    """On the Brax envs, 256 synthetic episodes of 20 steps: the exploration actions are uniform over the box
+    [-1, 1]^n (``_uniform_box_checks``); each episode starts at the s_0 of one of the four stored expert episodes,
+    drawn uniformly with replacement, and takes that episode's valid mask (the stored masks are set to distinct
+    lengths first); and each step is p_psi's predicted mean change, s_{t+1} = s_t + p_psi(θ-tilde, s_t, a_t) *
+    delta_scale, with the episode's recorded θ-tilde (recomputed here by one batched call of the decoder)."""
+    from jaxdeconf.train import build_algorithm
+
+    episodes = 256
+    config = build(env, "cpu", ("dil_offline",), 1, {**TINY, "env.horizon": "20",
+                                                        "offline.synthetic_episodes": str(episodes)})
+    algo = build_algorithm(config, "dil_offline")
+    T, stored = algo.env.horizon(algo.env_params), config.train.episodes_per_iter
+    assert (T, stored) == (LENGTHS[0], len(LENGTHS))
+    state = jax.jit(algo.init)(jax.random.key(0))
+    state, _ = jax.jit(algo.collect_expert)(state, jax.random.key(1))
+    data = state.expert_buffer.data
+    assert int(state.expert_buffer.size) == stored
+    lengths = jnp.zeros(data.valid.shape[1], jnp.int32).at[:stored].set(jnp.array(LENGTHS))
+    data = data.replace(valid=jnp.arange(T)[:, None] < lengths[None, :])
+    state = state.replace(expert_buffer=state.expert_buffer.replace(data=data))
+    batch = jax.jit(algo.synthetic_rollout)(state, jax.random.key(2))
+
+    _uniform_box_checks(np.asarray(batch.action))
+
+    starts = np.asarray(data.obs.imitator[0])  # [capacity, d]
+    match = (np.asarray(batch.obs[0])[:, None] == starts[None]).all(-1)  # [episodes, capacity]
+    assert len({tuple(s) for s in starts[:stored]}) == stored  # Distinct starts, so a start names its episode.
+    assert (match.sum(1) == 1).all() and not match[:, stored:].any()
+    source = match.argmax(1)
+    np.testing.assert_array_equal(np.asarray(batch.valid), np.asarray(data.valid)[:, source])
+    counts = np.bincount(source, minlength=stored)
+    np.testing.assert_array_less(np.abs(counts / episodes - 1 / stored),
+                                 4.5 * np.sqrt((1 / stored) * (1 - 1 / stored) / episodes))
+
+    _, decoder, _ = algo.networks
+    latent = jnp.broadcast_to(batch.latent, (T, *batch.latent.shape))
+    change = decoder.apply(state.encoder.params["decoder"], latent, batch.obs[:-1], batch.action)
+    np.testing.assert_allclose(np.asarray(batch.obs[1:]), np.asarray(batch.obs[:-1] + change * algo.delta_scale),
+                               rtol=1e-5, atol=1e-5)
