@@ -12,9 +12,7 @@ import dataclasses
 from jaxdeconf.algos.dil import (
     ENCODERS,
     FUSIONS,
-    GROUP_LIKELIHOODS,
     POLICY_LATENTS,
-    WEIGHTINGS,
     Deconfounded,
     DilConfig,
 )
@@ -23,7 +21,8 @@ from jaxdeconf.config import field
 
 @dataclasses.dataclass(frozen=True)
 class DilPlusConfig(DilConfig):
-    """``DilConfig``'s fields with this method's defaults (``--set dil_plus.<field>=...`` to ablate one)."""
+    """``DilConfig``'s fields with this method's defaults (``--set dil_plus.<field>=...`` to ablate one); the decoder's
+    weighting and likelihoods are ``dil``'s."""
 
     # q_phi reads each whole transition, where the evidence about θ is (on LunarLander the paper's input ends below
     # naive BC).
@@ -31,9 +30,6 @@ class DilPlusConfig(DilConfig):
     # A product of per-step Gaussian factors: once the evidence is in, the belief cannot fade (the GRU's does, e.g.
     # when the ant stands at its goal and its steps stop telling where the goal is).
     encoder: str = field("evidence", ENCODERS)
-    # The reference code's per-key weighting, as in ``dil``: a low-dimensional cue is not drowned by the body.
-    decoder_weighting: str = field("group_mean", WEIGHTINGS)
-    group_likelihood: str = field("declared", GROUP_LIKELIHOODS)
     # The policy is cloned on the codes q_phi writes on the imitator's own episodes, where it reads θ-hat online
     # (64 evenly spaced slots of the own buffer bound the matching's cost).
     policy_latent: str = field("matched", POLICY_LATENTS)
