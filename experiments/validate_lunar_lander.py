@@ -80,8 +80,9 @@ def run_gymnasium(episodes: int, seed: int, random_actions: bool = False) -> dic
     return {k: np.asarray(v) for k, v in out.items()}
 
 
-def summarize(stats: dict[str, np.ndarray]) -> dict[str, float]:
-    """Rates, return mean/std/quantiles and mean length."""
+def summarize(stats: dict[str, np.ndarray]) -> dict[str, float | None]:
+    """Rates, return mean/std/quantiles and mean length (of the landed episodes: None when none landed, which JSON
+    writes as null)."""
     ret = stats["return"]
     return {
         "episodes": int(ret.size),
@@ -94,7 +95,7 @@ def summarize(stats: dict[str, np.ndarray]) -> dict[str, float]:
         "return_median": float(np.median(ret)),
         "return_q95": float(np.quantile(ret, 0.95)),
         "length_mean": float(stats["length"].mean()),
-        "length_landed_mean": float(stats["length"][stats["landed"]].mean()) if stats["landed"].any() else float("nan"),
+        "length_landed_mean": float(stats["length"][stats["landed"]].mean()) if stats["landed"].any() else None,
     }
 
 
@@ -106,8 +107,12 @@ def table(rows: dict[str, dict[str, float]]) -> str:
         lines.append(
             f"| {name} | {r['episodes']} | {r['landing_rate']:.3f} | {r['crash_rate']:.3f} | {r['timeout_rate']:.3f} "
             f"| {r['return_mean']:.1f} ± {r['return_std']:.1f} | {r['return_q05']:.0f} / {r['return_median']:.0f} / "
-            f"{r['return_q95']:.0f} | {r['length_mean']:.1f} | {r['length_landed_mean']:.1f} |")
+            f"{r['return_q95']:.0f} | {r['length_mean']:.1f} | {_length(r['length_landed_mean'])} |")
     return "\n".join(lines)
+
+
+def _length(value: float | None) -> str:
+    return "none landed" if value is None else f"{value:.1f}"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -135,7 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     print(text)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "validation.md").write_text(text)
-    (args.out / "validation.json").write_text(json.dumps(rows, indent=2) + "\n")
+    (args.out / "validation.json").write_text(json.dumps(rows, indent=2, allow_nan=False) + "\n")
     return 0
 
 

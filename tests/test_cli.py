@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from conftest import TINY
 
+from jaxdeconf.errors import ConfigError
 from jaxdeconf.run import main
 
 TINY_ARGS = [arg for k, v in TINY.items() for arg in ("--set", f"{k}={v}")]
@@ -219,6 +220,25 @@ def test_memory_estimate_bounds_the_state(tiny_config):
         assert real <= guess.buffers + guess.params <= 20 * real, (name, real, guess)
 
 
+@pytest.mark.timeout(300)
+def test_memory_estimate_bounds_the_compiled_elbo_chunk(tiny_config):
+    """dil's estimate is at least XLA's own account of its compiled chunk (arguments, outputs, temporaries) when the
+    ELBO's K-step decoding is the largest working set: 8 episodes of 40 steps decoded 12 steps ahead."""
+    import jax
+
+    from jaxdeconf.memory import estimate
+    from jaxdeconf.train import build_algorithm, compiled_chunk, seed_keys
+
+    config = tiny_config(seeds=2, **{"env.horizon": "40", "train.prediction_steps": "12", "model.width": "32",
+                                     "train.batch_size": "8"})
+    algo = build_algorithm(config, "dil")
+    compiled = compiled_chunk(algo, 1).lower(jax.jit(jax.vmap(algo.init))(seed_keys(config))).compile()
+    xla = compiled.memory_analysis()
+    xla_bytes = xla.argument_size_in_bytes + xla.output_size_in_bytes + xla.temp_size_in_bytes
+    guess = estimate(config, "dil", algo.env, algo.env_params)
+    assert xla_bytes <= guess.total <= 10 * xla_bytes, (xla_bytes, guess)
+
+
 @pytest.mark.timeout(1200)  # Five runs of the CLI, three of which train.
 def test_run_then_protect_results(tmp_path, capfd):
     folder = tmp_path / "run"
@@ -311,3 +331,35 @@ def test_pinned_workers_get_disjoint_cores_or_none():
     assert worker_cores(0, 1, len(cores)) == cores
     assert worker_cores(0, len(cores) + 1, 1) is None
     assert worker_cores(0, len(cores), 2) is None
+
+
+def test_automatic_jobs_are_as_many_as_fit_and_explicit_jobs_must_fit(tiny_config, monkeypatch):
+    """With memory for the two largest programs, an automatic run of three trains two at a time; ``--jobs 3`` is
+    refused in one line; with no memory for the largest alone, an automatic run is refused too."""
+    from jaxdeconf import memory
+    from jaxdeconf.train import build_algorithm
+
+    config = tiny_config(seeds=2)
+    env, params = build_algorithm(config, "bc").env, build_algorithm(config, "bc").env_params
+    sizes = sorted((memory.estimate(config, a, env, params).total for a in config.algos), reverse=True)
+    monkeypatch.setattr(memory, "device_memory", lambda: (sizes[0] + sizes[1], "test device"))
+    assert memory.check_fits(config, env, params, 3, automatic=True) == 2
+    assert memory.check_fits(config, env, params, 2) == 2
+    with pytest.raises(ConfigError, match=r"\(dil, .*, .* at once; .* but the test device has"):
+        memory.check_fits(config, env, params, 3)
+    monkeypatch.setattr(memory, "device_memory", lambda: (sizes[0] - 1, "test device"))
+    with pytest.raises(ConfigError, match=r"is too large: .* \(dil at once"):
+        memory.check_fits(config, env, params, 3, automatic=True)
+
+
+def test_processes_share_a_gpu_unless_the_user_set_its_memory(monkeypatch):
+    from jaxdeconf.platform import share_accelerator
+
+    for name in ("XLA_PYTHON_CLIENT_PREALLOCATE", "XLA_PYTHON_CLIENT_MEM_FRACTION", "XLA_PYTHON_CLIENT_ALLOCATOR"):
+        monkeypatch.delenv(name, raising=False)
+    share_accelerator()
+    assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
+    monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE")
+    monkeypatch.setenv("XLA_PYTHON_CLIENT_MEM_FRACTION", ".3")
+    share_accelerator()
+    assert "XLA_PYTHON_CLIENT_PREALLOCATE" not in os.environ

@@ -60,13 +60,17 @@ def test_validation_writes_both_engines_rows(tmp_path):
     and the heuristic lands gymnasium's lander more often than random actions do (random actions always crash)."""
     proc = run("validate_lunar_lander.py", "--episodes", "2", "--out", str(tmp_path), timeout=280)
     assert proc.returncode == 0, proc.stderr
-    rows = json.loads((tmp_path / "validation.json").read_text())
+    def strict(constant: str) -> None:
+        raise ValueError(f"validation.json holds {constant}, which strict JSON readers refuse")
+
+    rows = json.loads((tmp_path / "validation.json").read_text(), parse_constant=strict)
     assert len(rows) == 4 and (tmp_path / "validation.md").exists()
     for row in rows.values():
         assert row["episodes"] == 2
         assert math.isclose(row["landing_rate"] + row["crash_rate"] + row["timeout_rate"], 1.0)
     gym = {k.split(", ")[1]: v for k, v in rows.items() if k.startswith("gymnasium")}
     assert gym["heuristic"]["return_mean"] > gym["random actions"]["return_mean"]
+    assert gym["random actions"]["length_landed_mean"] is None  # None landed: null, not NaN.
     again = run("validate_lunar_lander.py", "--episodes", "2", "--out", str(tmp_path), timeout=100)
     assert again.returncode == 2 and "pass --overwrite" in again.stderr  # Nothing already written is replaced.
 

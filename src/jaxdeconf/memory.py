@@ -3,7 +3,9 @@
 XLA fails late and badly on programs that cannot fit (a traceback from deep inside the compiler, or a machine that
 swaps for hours), so the CLI compares this estimate with the device's memory first. The estimate is deliberately
 generous: the seed-vmapped state (replay buffers, parameters, optimiser moments) held twice, as a chunk's input and
-output, plus the largest batch of episodes in flight with the activations a gradient step keeps for backpropagation.
+output, plus the larger of two working sets: the largest batch of episodes in flight with the activations a gradient
+step keeps for backpropagation, and the ELBO's K-step decoding (every step of its batch decoded K steps ahead, each
+decoder call's activations kept for backpropagation, three times over for their gradients and XLA's temporaries).
 """
 
 from __future__ import annotations
@@ -54,9 +56,21 @@ def estimate(config: Config, algo: str, env: Any, params: Any) -> Estimate:
     # and the decoder's K predictions of the next observations.
     obs = env.obs_sizes(params).imitator
     per_step = 4 * (4 * (m.gru + m.bc_gru) + 6 * m.width + 2 * m.latent + t.prediction_steps * (2 * m.width + obs))
-    working = cls.episodes_in_flight(config) * (episode_bytes(env, params) + horizon * per_step)
+    rollouts = cls.episodes_in_flight(config) * (episode_bytes(env, params) + horizon * per_step)
+    working = max(rollouts, cls.decoded_episodes(config) * horizon * elbo_step_bytes(config, env, params))
     return Estimate(algo=algo, buffers=config.seeds * cls.stored_episodes(config) * episode_bytes(env, params),
                     params=config.seeds * param_bytes, working=config.seeds * working)
+
+
+def elbo_step_bytes(config: Config, env: Any, params: Any) -> int:
+    """Bytes the ELBO keeps per decoded step: K decoder calls, each with its four Dense-LayerNorm-ELU blocks (four
+    arrays of the width each), the latent-action interaction, and its inputs, targets, outputs and NLLs, all three
+    times over: the activations, their gradients and a margin for XLA's temporaries (with twice, the estimate of
+    the cheetah's paper-preset dil program came within 2% of XLA's account of its compiled chunk on the CPU)."""
+    m = config.model
+    obs, action = env.obs_sizes(params).imitator, env.action_space(params).feature_size
+    call = 16 * m.width + m.latent + 4 * m.action_embed + 5 * obs + action + 1
+    return config.train.prediction_steps * 3 * 4 * call
 
 
 def device_memory() -> tuple[int, str]:
@@ -89,14 +103,20 @@ def _culprit(config: Config, env: Any, params: Any) -> str:
     return f"{name}={value}"
 
 
-def check_fits(config: Config, env: Any, params: Any, jobs: int) -> None:
-    """Raise a one-line ConfigError when the ``jobs`` largest algorithms, trained at once, cannot fit in memory."""
+def check_fits(config: Config, env: Any, params: Any, jobs: int, automatic: bool = False) -> int:
+    """How many algorithms to train at once: ``jobs``, or with ``automatic`` the most up to ``jobs`` whose largest
+    estimates fit together (on one GPU, the paper presets' dil programs fit one or two at a time). Raise a one-line
+    ConfigError when they (with ``automatic``, the largest alone) cannot fit in memory."""
     estimates = sorted((estimate(config, a, env, params) for a in config.algos), key=lambda e: -e.total)
-    need = sum(e.total for e in estimates[:max(1, jobs)])
     have, where = device_memory()
+    jobs = max(1, jobs)
+    while automatic and jobs > 1 and sum(e.total for e in estimates[:jobs]) > have:
+        jobs -= 1
+    need = sum(e.total for e in estimates[:jobs])
     if need > have:
         raise ConfigError(
             f"{_culprit(config, env, params)} is too large: the run needs an estimated {need / GIB:.1f} GiB "
-            f"({', '.join(e.algo for e in estimates[:max(1, jobs)])} at once; the largest, {estimates[0].algo}, "
+            f"({', '.join(e.algo for e in estimates[:jobs])} at once; the largest, {estimates[0].algo}, "
             f"{estimates[0].buffers / GIB:.1f} GiB of replay buffers) but the {where} has {have / GIB:.1f} GiB"
         )
+    return jobs

@@ -1,6 +1,6 @@
-"""Process set-up of the command-line tools, done before JAX starts its backend: how many devices this machine's CPU
-shows, joining a run spread over several processes or hosts, and pinning a process to one core. A library user's
-process is left as JAX sets it up.
+"""Process set-up of the command-line tools, done before JAX starts its backend: sharing a GPU between a run's
+processes, how many devices this machine's CPU shows, joining a run spread over several processes or hosts, and
+pinning a process to one core. A library user's process is left as JAX sets it up.
 """
 
 from __future__ import annotations
@@ -14,6 +14,15 @@ from jaxdeconf.errors import ConfigError
 
 # The usual variables of a multi-host launch, read when the flags leave them out (SLURM's are detected by JAX itself).
 COORDINATOR_ENV, PROCESSES_ENV, PROCESS_ID_ENV = "JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"
+
+
+def share_accelerator() -> None:
+    """Let the processes of one run share a GPU: each allocates what it uses instead of JAX's default, 75% of the
+    device at its first use, which would leave the workers nothing after the parent's memory check, and a second
+    worker nothing after the first. A user's own XLA_PYTHON_CLIENT_* memory setting stays."""
+    if not any(name in os.environ for name in ("XLA_PYTHON_CLIENT_PREALLOCATE", "XLA_PYTHON_CLIENT_MEM_FRACTION",
+                                               "XLA_PYTHON_CLIENT_ALLOCATOR")):
+        os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
 
 
 def set_host_devices(count: int) -> None:

@@ -627,6 +627,9 @@ def _select(only: str) -> list[Part]:
 def main(argv: list[str] | None = None) -> int:
     """Command line; one ``error:`` line and exit code 2 for bad input, the failing training's code otherwise, 128 +
     the signal's number when stopped by SIGTERM or Ctrl-C (the running training stops with it)."""
+    from jaxdeconf import platform
+
+    platform.share_accelerator()  # Its in-process figures and its trainings' workers share the GPU.
     args = parse_args(argv)
     try:
         with signals_raise():

@@ -23,21 +23,22 @@ from jaxdeconf.workers import join_processes, run_worker, train_in_turn, train_w
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code (2 for bad input, 128 + the signal number when stopped by one)."""
+    from jaxdeconf import platform
+
+    platform.share_accelerator()
     try:
         args = parse_args(argv)
         if args.worker is not None:
             return run_worker(args)
-        from jaxdeconf import platform
 
         set_up = platform.distributed_args(args.coordinator, args.num_processes, args.process_id)
         if set_up is not None:
             return _distributed(args, set_up)
         with signals_raise():
-            config, folder = _setup(args)
+            config, folder, jobs = _setup(args)
             lock = prepare_folder(folder, config, args.overwrite)
             try:
-                return _run(config, folder, quiet=args.quiet, jobs=args.jobs, host_devices=args.host_devices,
-                            pin=args.pin)
+                return _run(config, folder, quiet=args.quiet, jobs=jobs, host_devices=args.host_devices, pin=args.pin)
             finally:
                 lock.release()
     except ConfigError as err:
@@ -49,8 +50,10 @@ def main(argv: list[str] | None = None) -> int:
         return 128 + stop.signum
 
 
-def _setup(args: argparse.Namespace) -> tuple[cfg.Config, pathlib.Path]:
-    """Validate every input (flags, config, env parameters, memory) before anything is written or compiled."""
+def _setup(args: argparse.Namespace) -> tuple[cfg.Config, pathlib.Path, int]:
+    """Validate every input (flags, config, env parameters, memory) before anything is written or compiled; the
+    config, the results folder and how many algorithms train side by side (``--jobs``, or as many as the cores
+    allow and the memory holds)."""
     if args.jobs < 0:
         raise ConfigError(f"--jobs={args.jobs} is not allowed: need 0 (automatic) or a positive integer")
     from jaxdeconf.platform import available_cores, check_host_devices
@@ -64,8 +67,9 @@ def _setup(args: argparse.Namespace) -> tuple[cfg.Config, pathlib.Path]:
     from jaxdeconf.memory import check_fits
 
     env, params = make(config.env, **config.env_params)
-    check_fits(config, env, params, args.jobs or min(len(config.algos), len(available_cores())))
-    return config, pathlib.Path(args.out or f"results/{config.env.rpartition(':')[2]}-{args.preset}")
+    jobs = check_fits(config, env, params, args.jobs or min(len(config.algos), len(available_cores())),
+                      automatic=not args.jobs)
+    return config, pathlib.Path(args.out or f"results/{config.env.rpartition(':')[2]}-{args.preset}"), jobs
 
 
 def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0, host_devices: int = 1,
@@ -97,7 +101,7 @@ def _distributed(args: argparse.Namespace, set_up: dict[str, Any]) -> int:
     from jaxdeconf.sharding import is_primary, sync
 
     with signals_raise():
-        config, folder = _setup(args)
+        config, folder, _ = _setup(args)  # One algorithm at a time, over every process's devices.
         lock = prepare_folder(folder, config, args.overwrite) if is_primary() else None
         try:
             sync("prepared")

@@ -120,6 +120,12 @@ class Algorithm:
         t = config.train
         return max(t.batch_size, t.episodes_per_iter, t.eval_episodes)
 
+    @classmethod
+    def decoded_episodes(cls, config: Config) -> int:
+        """Episodes one seed's ELBO step decodes K steps ahead (for ``memory.estimate``): none without an ELBO."""
+        del config  # Unused.
+        return 0
+
     @property
     def space(self) -> Any:
         """The env's action space."""

@@ -92,6 +92,11 @@ class Deconfounded(Algorithm):
         """The expert buffer and the buffer of the imitator's own episodes."""
         return 2 * config.train.buffer_episodes
 
+    @classmethod
+    def decoded_episodes(cls, config: Config) -> int:
+        """The ELBO's batch of exploration episodes."""
+        return config.train.batch_size
+
     def __post_init__(self) -> None:
         object.__setattr__(self, "delta_scale", observation_delta_scale(self.env, self.env_params)
                            if self.env.obs_likelihood == "gaussian" else None)

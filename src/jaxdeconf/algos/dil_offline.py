@@ -86,6 +86,11 @@ class DeconfoundedOffline(Deconfounded):
         """Besides the shared batches, the synthetic episodes rolled out through p_psi."""
         return max(super().episodes_in_flight(config), config.offline.synthetic_episodes)
 
+    @classmethod
+    def decoded_episodes(cls, config: Config) -> int:
+        """p_psi's batch of expert episodes or q_on's synthetic episodes, whichever is larger."""
+        return max(config.train.batch_size, config.offline.synthetic_episodes)
+
     def init(self, key: jax.Array) -> TrainState:
         """Fresh q_on, q_off, p_psi and pi_eta; an expert buffer and no buffer of own episodes."""
         key, k_on, k_off, k_dec, k_pol = jax.random.split(key, 5)
