@@ -248,16 +248,30 @@ def run_mdp(env: str) -> Callable[[Context], dict[str, Any]]:
     return run
 
 
+def last_returns(folder: pathlib.Path, algo: str) -> tuple[float, float]:
+    """Return over the last four evaluations (each seed's mean), mean and standard error over seeds, from the
+    training's metrics (a summary written before it had these columns is read the same way)."""
+    import numpy as np
+
+    from jaxdeconf import results
+
+    _, returns = results.eval_table(results.load_metrics(folder, algo), "eval_return")
+    mean, se = results.mean_se(np.nanmean(returns[:, -4:], axis=1))
+    return float(mean), float(se)
+
+
 def section_mdp(env: str) -> Callable[[Context, dict[str, Any]], str]:
     def section(ctx: Context, n: dict[str, Any]) -> str:
         folder = ctx.run_dir(env)
-        lines = ["| algorithm | return (final evaluation) | share of the bc → oracle gap closed: final / last 4 "
-                 "evaluations | the paper's share |", "|---|---|---|---|"]
+        lines = ["| algorithm | return, final evaluation | return, last 4 evaluations | share of the bc → oracle gap "
+                 "closed: final / last 4 | the paper's share |", "|---|---|---|---|---|"]
         for row in n["rows"]:
             gap = (f"{row['gap_closed']:.0%} / {row['gap_closed_last4']:.0%}"
                    if isinstance(row.get("gap_closed"), float) else "")
-            paper = f"≈ {PAPER_GAP_CLOSED[env]:.0%}" if row["algo"] == "dil" else ""
-            lines.append(f"| {row['algo']} | {row['return_mean']:.1f} ± {row['return_se']:.1f} | {gap} | {paper} |")
+            paper = f"≈ {PAPER_GAP_CLOSED[env]:.0%} (its Figure 4)" if row["algo"] == "dil" else ""
+            last4 = last_returns(folder, row["algo"])
+            lines.append(f"| {row['algo']} | {row['return_mean']:.1f} ± {row['return_se']:.1f} | {last4[0]:.1f} ± "
+                         f"{last4[1]:.1f} | {gap} | {paper} |")
         return (f"The paper's Figure 4 ({env}), {int(n['rows'][0]['seeds'])} seeds, mean ± s.e. The paper's "
                 f"ordering: {PAPER_ORDER}.\n\n" + "\n".join(lines) + "\n\n"
                 + _link(ctx, folder / "comparison.png", f"{env} learning curves"))
@@ -627,9 +641,9 @@ def _select(only: str) -> list[Part]:
 def main(argv: list[str] | None = None) -> int:
     """Command line; one ``error:`` line and exit code 2 for bad input, the failing training's code otherwise, 128 +
     the signal's number when stopped by SIGTERM or Ctrl-C (the running training stops with it)."""
-    from jaxdeconf import platform
+    from jaxdeconf.platform import share_accelerator
 
-    platform.share_accelerator()  # Its in-process figures and its trainings' workers share the GPU.
+    share_accelerator()  # Its in-process figures and its trainings' workers share the GPU.
     args = parse_args(argv)
     try:
         with signals_raise():

@@ -41,7 +41,8 @@ def mean_se(x: np.ndarray, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def summarize(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> list[dict[str, Any]]:
-    """One summary row per algorithm, from its final evaluation."""
+    """One summary row per algorithm, from its final evaluation (and its return over the last four: each seed's
+    mean of them, then mean and standard error over seeds)."""
     table = []
     for algo in config.algos:
         rows = load_metrics(folder, algo)
@@ -51,8 +52,10 @@ def summarize(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None)
         final = returns[:, -1]
         m, se = mean_se(final)
         iterations = int(max(r["iteration"] for r in rows))
+        last4_m, last4_se = mean_se(np.nanmean(returns[:, -4:], axis=1))
         row: dict[str, Any] = {"algo": algo, "seeds": int(final.size), "iterations": iterations,
-                               "return_mean": float(m), "return_se": float(se)}
+                               "return_mean": float(m), "return_se": float(se),
+                               "return_last4_mean": float(last4_m), "return_last4_se": float(last4_se)}
         extra_keys = sorted({k for r in rows for k in r if k.startswith("eval_") and k not in ("eval_return",)})
         for key in extra_keys:
             row[key] = float(np.nanmean(eval_table(rows, key)[1][:, -1]))
