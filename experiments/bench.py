@@ -7,8 +7,8 @@ measured on the machine it runs on.
 Also seconds per iteration versus seeds on one device and over 2 host devices, and the GRU's achieved GFLOP/s against
 a plain matmul's (``bench_scale.py``), and seconds per iteration of every algorithm at each env's CPU preset (section
 ``algos``), and milliseconds per part of the default job's iteration (section ``profile``). Sections can be chosen:
-``make bench SECTIONS="seeds e2e efficiency profile cells reference batch algos lunar brax"`` (the default is all
-ten; ``cells`` times model.cell=gru against mingru);
+``make bench SECTIONS="seeds e2e efficiency profile cells layouts reference batch algos lunar brax"`` (the default
+is all eleven; ``cells`` times model.cell=gru against mingru, ``layouts`` the GRU's sequence in three layouts);
 ``python experiments/bench.py e2e --e2e-iterations 50`` compares the layouts on a shorter run.
 """
 
@@ -109,6 +109,8 @@ def main(sections: list[str], e2e_iterations: int = 0) -> None:
         bench_scale.profile()
     if "cells" in sections:
         bench_scale.cells()
+    if "layouts" in sections:
+        bench_scale.layouts()
 
     if "batch" in sections:
         batch_sizes()
@@ -255,7 +257,8 @@ def _brax_one(name: str, n: int) -> None:
           f"{100 * (rates['raw'] / rates['ours'] - 1):+.1f}%", flush=True)
 
 
-SECTIONS = ("seeds", "e2e", "efficiency", "profile", "cells", "reference", "batch", "algos", "lunar", "brax")
+SECTIONS = ("seeds", "e2e", "efficiency", "profile", "cells", "layouts", "reference", "batch", "algos", "lunar",
+            "brax")
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     """The sections to run (all when none is named) and the e2e length; exit code 2 with one line for bad input."""

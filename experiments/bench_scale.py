@@ -2,8 +2,9 @@
 over host devices (section ``seeds``), per-core efficiency of the GRU steps against a plain matmul measured in
 the same process (section ``efficiency``), where an iteration of the default job goes (section ``profile``), and
 the GRU's gradient steps against the minGRU's (``model.cell``; ``python experiments/bench_scale.py --cells``, on one
-core). Each device count runs in its own process (a process's CPU device count is fixed when JAX starts), unpinned,
-so a 2-device process may use both cores.
+core), and the GRU's sequence in three layouts of the same arithmetic (section ``layouts``). Each device count runs
+in its own process (a process's CPU device count is fixed when JAX starts), unpinned, so a 2-device process may use
+both cores.
 """
 
 from __future__ import annotations
@@ -144,6 +145,81 @@ def _cell_steps(cell: str, seeds: int) -> dict[str, float]:
                          else (algo.update_encoder, config.train.encoder_steps))
         ms[part] = 1e3 * _best(jax.jit(jax.vmap(update)), states, keys, reps=5) / steps
     return ms
+
+
+def layouts(shapes: tuple[tuple[int, int, int, int], ...] = ((32, 32, 100, 1), (32, 32, 100, 10), (64, 8, 200, 1),
+                                                             (64, 8, 200, 5))) -> None:
+    """Milliseconds per gradient of a recurrent policy's teacher-forced sequence (GRU, width = hidden) in three
+    layouts of the same arithmetic: the shipped one (``losses.recurrent_policy_scan``: cell and readout every step),
+    the readout hoisted out of the loop, and the readout hoisted with every step's three input projections computed
+    for the whole sequence at once and the three recurrent ones as one matmul. Timed in turn, round by round, so load
+    from other processes falls on all three alike; (hidden, batch, steps, seeds vmapped) per row."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdeconf import losses
+    from jaxdeconf.models import RecurrentPolicy
+
+    print("\n## GRU sequence layouts: ms per gradient of a recurrent policy's sequence loss, best of 15 rounds")
+    layout_fns = {"shipped": losses.recurrent_policy_scan, "readout hoisted": _readout_hoisted,
+                  "fused": _fused_projections}
+    for hidden, batch, steps, seeds in shapes:
+        policy = RecurrentPolicy(hidden, 16, hidden, 5)
+        k_obs, k_act, k_init = jax.random.split(jax.random.key(0), 3)
+        obs = jax.random.normal(k_obs, (seeds, steps, batch, 6))
+        prev = jax.random.normal(k_act, (seeds, steps, batch, 5))
+        params = jax.vmap(lambda k, p=policy: p.init(k, jnp.zeros((1, 6)), jnp.zeros((1, 5))))(
+            jax.random.split(k_init, seeds))
+        grads = {name: jax.jit(jax.vmap(jax.grad(lambda p, o, a, f=fn, n=policy: jnp.sum(f(n, p, o, a) ** 2))))
+                 for name, fn in layout_fns.items()}
+        times = {name: [] for name in grads}
+        for _ in range(16):  # The first round compiles and warms up.
+            for name, grad in grads.items():
+                t0 = time.perf_counter()
+                jax.block_until_ready(grad(params, obs, prev))
+                times[name].append(time.perf_counter() - t0)
+        best = {name: min(t[1:]) for name, t in times.items()}
+        print(f"hidden {hidden}, batch {batch}, {steps} steps, {seeds:2d} seeds: " + ", ".join(
+            f"{name} {1e3 * t:.2f} ms ({best['shipped'] / t:.2f}x)" for name, t in best.items()), flush=True)
+
+
+def _readout_hoisted(policy: object, params: object, obs: object, prev: object) -> object:
+    """``layouts``: the GRU cell alone in the loop, the head on every state at once."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdeconf.models import RecurrentPolicy
+
+    inputs = policy.apply(params, obs, prev, method=RecurrentPolicy.embed)
+    carry = jnp.zeros((*obs.shape[1:-1], policy.hidden), jnp.float32)
+    states = jax.lax.scan(lambda c, x: policy.apply(params, c, x, method=lambda m, c, x: m.cell(c, x)), carry,
+                          inputs)[1]
+    return policy.apply(params, states, method=RecurrentPolicy.readout)
+
+
+def _fused_projections(policy: object, params: object, obs: object, prev: object) -> object:
+    """``layouts``: flax's GRUCell arithmetic with its input projections over the whole sequence and its recurrent
+    ones as one matmul per step, the head on every state at once."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdeconf.models import RecurrentPolicy
+
+    cell = params["params"]["cell"]
+    w_in = jnp.concatenate([cell[g]["kernel"] for g in ("ir", "iz", "in")], axis=-1)
+    b_in = jnp.concatenate([cell[g]["bias"] for g in ("ir", "iz", "in")])
+    w_h = jnp.concatenate([cell[g]["kernel"] for g in ("hr", "hz", "hn")], axis=-1)
+    projected = policy.apply(params, obs, prev, method=RecurrentPolicy.embed) @ w_in + b_in
+
+    def step(h: jax.Array, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        xr, xz, xn = jnp.split(x, 3, axis=-1)
+        hr, hz, hn = jnp.split(h @ w_h, 3, axis=-1)
+        r, z = jax.nn.sigmoid(xr + hr), jax.nn.sigmoid(xz + hz)
+        h = (1.0 - z) * jnp.tanh(xn + r * (hn + cell["hn"]["bias"])) + z * h
+        return h, h
+
+    states = jax.lax.scan(step, jnp.zeros((*obs.shape[1:-1], policy.hidden), jnp.float32), projected)[1]
+    return policy.apply(params, states, method=RecurrentPolicy.readout)
 
 
 def _best(fn: object, *args: object, reps: int = 20) -> float:
