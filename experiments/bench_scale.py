@@ -170,6 +170,9 @@ def layouts(shapes: tuple[tuple[int, int, int, int], ...] = ((32, 32, 100, 1), (
         prev = jax.random.normal(k_act, (seeds, steps, batch, 5))
         params = jax.vmap(lambda k, p=policy: p.init(k, jnp.zeros((1, 6)), jnp.zeros((1, 5))))(
             jax.random.split(k_init, seeds))
+        outs = {name: jax.jit(jax.vmap(lambda p, o, a, f=fn, n=policy: f(n, p, o, a)))(params, obs, prev)
+                for name, fn in layout_fns.items()}
+        diff = max(float(jnp.max(jnp.abs(out - outs["shipped"]))) for out in outs.values())
         grads = {name: jax.jit(jax.vmap(jax.grad(lambda p, o, a, f=fn, n=policy: jnp.sum(f(n, p, o, a) ** 2))))
                  for name, fn in layout_fns.items()}
         times = {name: [] for name in grads}
@@ -180,7 +183,8 @@ def layouts(shapes: tuple[tuple[int, int, int, int], ...] = ((32, 32, 100, 1), (
                 times[name].append(time.perf_counter() - t0)
         best = {name: min(t[1:]) for name, t in times.items()}
         print(f"hidden {hidden}, batch {batch}, {steps} steps, {seeds:2d} seeds: " + ", ".join(
-            f"{name} {1e3 * t:.2f} ms ({best['shipped'] / t:.2f}x)" for name, t in best.items()), flush=True)
+            f"{name} {1e3 * t:.2f} ms ({best['shipped'] / t:.2f}x)" for name, t in best.items())
+              + f"; outputs within {diff:.1e} of the shipped layout's", flush=True)
 
 
 def _readout_hoisted(policy: object, params: object, obs: object, prev: object) -> object:

@@ -99,7 +99,7 @@ def summarize(stats: dict[str, np.ndarray]) -> dict[str, float | None]:
     }
 
 
-def table(rows: dict[str, dict[str, float]]) -> str:
+def table(rows: dict[str, dict[str, float | None]]) -> str:
     """Markdown table of the summaries."""
     lines = ["| env | episodes | landed | crashed | timed out | return mean ± std | return 5% / 50% / 95% "
              "| mean length | mean length (landed) |", "|---|---|---|---|---|---|---|---|---|"]
@@ -112,6 +112,7 @@ def table(rows: dict[str, dict[str, float]]) -> str:
 
 
 def _length(value: float | None) -> str:
+    """A mean length for the table; None when no episode landed."""
     return "none landed" if value is None else f"{value:.1f}"
 
 
@@ -138,9 +139,10 @@ def main(argv: list[str] | None = None) -> int:
             f"permutation, {HORIZON}-step limit; measured by experiments/validate_lunar_lander.py.\n\n"
             + table(rows) + "\n")
     print(text)
+    data = json.dumps(rows, indent=2, allow_nan=False) + "\n"  # Before writing anything: it refuses NaN.
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "validation.md").write_text(text)
-    (args.out / "validation.json").write_text(json.dumps(rows, indent=2, allow_nan=False) + "\n")
+    (args.out / "validation.json").write_text(data)
     return 0
 
 

@@ -237,6 +237,8 @@ def test_memory_estimate_bounds_the_compiled_elbo_chunk(tiny_config):
     xla_bytes = xla.argument_size_in_bytes + xla.output_size_in_bytes + xla.temp_size_in_bytes
     guess = estimate(config, "dil", algo.env, algo.env_params)
     assert xla_bytes <= guess.total <= 10 * xla_bytes, (xla_bytes, guess)
+    bc = estimate(config, "bc", algo.env, algo.env_params)  # The rollouts' working set alone, the same for both.
+    assert guess.working > 5 * bc.working, (guess, bc)
 
 
 @pytest.mark.timeout(1200)  # Five runs of the CLI, three of which train.
@@ -340,7 +342,8 @@ def test_automatic_jobs_are_as_many_as_fit_and_explicit_jobs_must_fit(tiny_confi
     from jaxdeconf.train import build_algorithm
 
     config = tiny_config(seeds=2)
-    env, params = build_algorithm(config, "bc").env, build_algorithm(config, "bc").env_params
+    bc = build_algorithm(config, "bc")
+    env, params = bc.env, bc.env_params
     sizes = sorted((memory.estimate(config, a, env, params).total for a in config.algos), reverse=True)
     monkeypatch.setattr(memory, "device_memory", lambda: (sizes[0] + sizes[1], "test device"))
     assert memory.check_fits(config, env, params, 3, automatic=True) == 2
@@ -353,13 +356,13 @@ def test_automatic_jobs_are_as_many_as_fit_and_explicit_jobs_must_fit(tiny_confi
 
 
 def test_processes_share_a_gpu_unless_the_user_set_its_memory(monkeypatch):
-    from jaxdeconf.platform import share_accelerator
+    from jaxdeconf.platform import GPU_MEMORY_ENV, share_accelerator
 
-    for name in ("XLA_PYTHON_CLIENT_PREALLOCATE", "XLA_PYTHON_CLIENT_MEM_FRACTION", "XLA_PYTHON_CLIENT_ALLOCATOR"):
+    for name in GPU_MEMORY_ENV:
         monkeypatch.delenv(name, raising=False)
     share_accelerator()
     assert os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] == "false"
     monkeypatch.delenv("XLA_PYTHON_CLIENT_PREALLOCATE")
-    monkeypatch.setenv("XLA_PYTHON_CLIENT_MEM_FRACTION", ".3")
+    monkeypatch.setenv("XLA_CLIENT_MEM_FRACTION", ".3")
     share_accelerator()
     assert "XLA_PYTHON_CLIENT_PREALLOCATE" not in os.environ

@@ -103,7 +103,8 @@ def test_train_brax_expert_tiny_run(tmp_path):
 @pytest.mark.timeout(5400)
 def test_every_paper_preset_compiles_runs_and_fits_an_h100():
     """One iteration of every algorithm at every env's paper preset on this CPU, each program's memory (the
-    estimate and XLA's account of the compiled chunk, at 5 seeds) under an H100's 80 GB."""
+    estimate, at least XLA's account of the compiled chunk, at 5 seeds) under the 75% of an H100's 80 GB that JAX's
+    allocator may use."""
     proc = run("paper_scale.py", "check", timeout=5300)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     rows = [line for line in proc.stdout.splitlines() if line.startswith("| ") and "|---" not in line][1:]

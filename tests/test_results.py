@@ -45,3 +45,17 @@ def test_summary_rows_hand_values(tmp_path):
     from jaxdeconf.reproduce import last_returns
 
     assert last_returns(tmp_path, "bc") == pytest.approx((3.75, 1.25))
+
+
+def test_mean_se_skips_missing_seeds_and_a_zero_gap_is_nan():
+    import math
+
+    import numpy as np
+
+    from jaxdeconf.results import add_gap_closed, mean_se
+
+    mean, se = mean_se(np.array([1.0, np.nan, 3.0]))
+    assert (float(mean), float(se)) == pytest.approx((2.0, 1.0))  # std of (1, 3) over sqrt(2), not sqrt(3).
+    table = [{"algo": a, "return_mean": 5.0, "return_last4_mean": 5.0} for a in ("bc", "oracle", "dil")]
+    add_gap_closed(table)
+    assert all(math.isnan(row["gap_closed"]) and math.isnan(row["gap_closed_last4"]) for row in table)

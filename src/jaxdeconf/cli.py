@@ -36,7 +36,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--jobs", type=int, default=0,
                    help="algorithms trained at once, each in its own process "
-                        "(default: one per algorithm, at most one per available core)")
+                        "(default: one per algorithm, at most one per available core and as many as fit in "
+                        "memory together)")
     p.add_argument("--pin", action="store_true",
                    help="pin each side-by-side algorithm to its own core(s) when they fit (default: unpinned, each "
                         "free to use an idle core)")

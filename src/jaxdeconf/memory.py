@@ -117,6 +117,7 @@ def check_fits(config: Config, env: Any, params: Any, jobs: int, automatic: bool
         raise ConfigError(
             f"{_culprit(config, env, params)} is too large: the run needs an estimated {need / GIB:.1f} GiB "
             f"({', '.join(e.algo for e in estimates[:jobs])} at once; the largest, {estimates[0].algo}, "
-            f"{estimates[0].buffers / GIB:.1f} GiB of replay buffers) but the {where} has {have / GIB:.1f} GiB"
+            f"{estimates[0].buffers / GIB:.1f} GiB of replay buffers and {estimates[0].working / GIB:.1f} GiB of "
+            f"working set) but the {where} has {have / GIB:.1f} GiB"
         )
     return jobs

@@ -16,12 +16,16 @@ from jaxdeconf.errors import ConfigError
 COORDINATOR_ENV, PROCESSES_ENV, PROCESS_ID_ENV = "JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"
 
 
+# JAX's GPU-memory variables (jaxlib 0.10's names; XLA_PYTHON_CLIENT_MEM_FRACTION is the older spelling of the second).
+GPU_MEMORY_ENV = ("XLA_PYTHON_CLIENT_PREALLOCATE", "XLA_CLIENT_MEM_FRACTION", "XLA_PYTHON_CLIENT_MEM_FRACTION",
+                  "XLA_PYTHON_CLIENT_ALLOCATOR")
+
+
 def share_accelerator() -> None:
     """Let the processes of one run share a GPU: each allocates what it uses instead of JAX's default, 75% of the
     device at its first use, which would leave the workers nothing after the parent's memory check, and a second
     worker nothing after the first. A user's own XLA_PYTHON_CLIENT_* memory setting stays."""
-    if not any(name in os.environ for name in ("XLA_PYTHON_CLIENT_PREALLOCATE", "XLA_PYTHON_CLIENT_MEM_FRACTION",
-                                               "XLA_PYTHON_CLIENT_ALLOCATOR")):
+    if not any(name in os.environ for name in GPU_MEMORY_ENV):
         os.environ["XLA_PYTHON_CLIENT_PREALLOCATE"] = "false"
 
 

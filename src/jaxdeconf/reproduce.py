@@ -250,7 +250,7 @@ def run_mdp(env: str) -> Callable[[Context], dict[str, Any]]:
 
 def last_returns(folder: pathlib.Path, algo: str) -> tuple[float, float]:
     """Return over the last four evaluations (each seed's mean), mean and standard error over seeds, from the
-    training's metrics (a summary written before it had these columns is read the same way)."""
+    training's metrics: for a part whose summary was written before it had these columns."""
     import numpy as np
 
     from jaxdeconf import results
@@ -269,7 +269,8 @@ def section_mdp(env: str) -> Callable[[Context, dict[str, Any]], str]:
             gap = (f"{row['gap_closed']:.0%} / {row['gap_closed_last4']:.0%}"
                    if isinstance(row.get("gap_closed"), float) else "")
             paper = f"≈ {PAPER_GAP_CLOSED[env]:.0%} (its Figure 4)" if row["algo"] == "dil" else ""
-            last4 = last_returns(folder, row["algo"])
+            last4 = ((row["return_last4_mean"], row["return_last4_se"]) if "return_last4_mean" in row
+                     else last_returns(folder, row["algo"]))
             lines.append(f"| {row['algo']} | {row['return_mean']:.1f} ± {row['return_se']:.1f} | {last4[0]:.1f} ± "
                          f"{last4[1]:.1f} | {gap} | {paper} |")
         return (f"The paper's Figure 4 ({env}), {int(n['rows'][0]['seeds'])} seeds, mean ± s.e. The paper's "

@@ -34,15 +34,17 @@ def eval_table(rows: list[dict[str, Any]], key: str) -> tuple[np.ndarray, np.nda
 
 
 def mean_se(x: np.ndarray, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and standard error over ``axis``."""
-    n = x.shape[axis]
-    return np.nanmean(x, axis=axis), (np.nanstd(x, axis=axis, ddof=1) / np.sqrt(n) if n > 1 else np.zeros_like(
-        np.nanmean(x, axis=axis)))
+    """Mean and standard error over ``axis``, of the values that are not NaN (a standard error of 0 for one)."""
+    n = np.sum(~np.isnan(x), axis=axis)
+    mean = np.nanmean(x, axis=axis)
+    if np.all(n <= 1):
+        return mean, np.zeros_like(mean)
+    return mean, np.nanstd(x, axis=axis, ddof=1) / np.sqrt(n)
 
 
 def summarize(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> list[dict[str, Any]]:
-    """One summary row per algorithm, from its final evaluation (and its return over the last four: each seed's
-    mean of them, then mean and standard error over seeds)."""
+    """One summary row per algorithm, from its final evaluation (and its return over the last four, or as many as
+    there are: each seed's mean of them, then mean and standard error over seeds)."""
     table = []
     for algo in config.algos:
         rows = load_metrics(folder, algo)
@@ -68,23 +70,20 @@ def summarize(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None)
                 row[f"max_dev_online_vs_{kind}"] = float(np.max(np.abs(online - refs[f"{kind}_online"])))
                 row[f"max_dev_expert_vs_{kind}"] = float(np.max(np.abs(expert - refs[f"{kind}_expert"])))
         table.append(row)
-    add_gap_closed(table, folder)
+    add_gap_closed(table)
     return table
 
 
-def add_gap_closed(table: list[dict[str, Any]], folder: pathlib.Path) -> None:
+def add_gap_closed(table: list[dict[str, Any]]) -> None:
     """Add, when bc and the oracle are both in ``table``, each algorithm's share of the bc-to-oracle gap it closes,
-    (return - bc) / (oracle - bc), at the final evaluation and averaged over the last four."""
-    names = {row["algo"] for row in table}
-    if not {"bc", "oracle"} <= names:
+    (return - bc) / (oracle - bc), at the final evaluation and over the last four (NaN where bc equals the oracle)."""
+    rows = {row["algo"]: row for row in table}
+    if not {"bc", "oracle"} <= rows.keys():
         return
-    last4 = {name: float(np.nanmean(eval_table(load_metrics(folder, name), "eval_return")[1][:, -4:]))
-             for name in names}
-    final = {row["algo"]: row["return_mean"] for row in table}
     for row in table:
-        name = row["algo"]
-        row["gap_closed"] = (final[name] - final["bc"]) / (final["oracle"] - final["bc"])
-        row["gap_closed_last4"] = (last4[name] - last4["bc"]) / (last4["oracle"] - last4["bc"])
+        for key, share in (("return_mean", "gap_closed"), ("return_last4_mean", "gap_closed_last4")):
+            gap = rows["oracle"][key] - rows["bc"][key]
+            row[share] = (row[key] - rows["bc"][key]) / gap if gap else float("nan")
 
 
 def write_summary(folder: pathlib.Path, table: list[dict[str, Any]], refs: dict[str, Any] | None) -> str:

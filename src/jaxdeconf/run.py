@@ -101,7 +101,8 @@ def _distributed(args: argparse.Namespace, set_up: dict[str, Any]) -> int:
     from jaxdeconf.sharding import is_primary, sync
 
     with signals_raise():
-        config, folder, _ = _setup(args)  # One algorithm at a time, over every process's devices.
+        args.jobs = 1  # One algorithm at a time, over every process's devices: the memory check's count too.
+        config, folder, _ = _setup(args)
         lock = prepare_folder(folder, config, args.overwrite) if is_primary() else None
         try:
             sync("prepared")
