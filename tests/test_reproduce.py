@@ -40,9 +40,10 @@ def test_report_page_holds_each_finished_part(small_report):
     assert [row["algo"] for row in done["numbers"]["rows"]] == ["bc", "dil"]
     assert done["numbers"]["rows"][0]["seeds"] == 10
     for row in done["numbers"]["rows"]:  # Each algorithm's row in the page is the summary's number.
-        assert f"| {row['algo']} | {row['return_mean']:.1f} ± {row['return_se']:.1f} |" in page
+        assert (f"| {row['algo']} | {row['return_mean']:.1f} ± {row['return_se']:.1f} | "
+                f"{row['max_dev_online_vs_interventional']:.3f} | {row['max_dev_expert_vs_conditional']:.3f} |") in page
     refs = json.loads((out / "runs" / "bandit" / "references.json").read_text())
-    assert f"| exact interventional | {refs['interventional_count']:.1f} | 54.1 |" in page  # Beside the paper's.
+    assert f"| exact interventional | {refs['interventional_count']:.1f} | | | 54.1 |" in page  # Beside the paper's.
     assert (out / "parts" / "figure1" / "figure1.png").stat().st_size > 0
     assert "](parts/figure1/figure1.png)" in page and "](runs/bandit/comparison.png)" in page
 
