@@ -256,13 +256,9 @@ def run_mdp(env: str) -> Callable[[Context], dict[str, Any]]:
 def last_returns(folder: pathlib.Path, algo: str) -> tuple[float, float]:
     """Return over the last four evaluations (each seed's mean), mean and standard error over seeds, from the
     training's metrics: for a part whose summary was written before it had these columns."""
-    import numpy as np
-
     from jaxdeconf import results
 
-    _, returns = results.eval_table(results.load_metrics(folder, algo), "eval_return")
-    mean, se = results.mean_se(np.nanmean(returns[:, -4:], axis=1))
-    return float(mean), float(se)
+    return results.last_four(results.eval_table(results.load_metrics(folder, algo), "eval_return")[1])
 
 
 def section_mdp(env: str) -> Callable[[Context, dict[str, Any]], str]:

@@ -42,6 +42,13 @@ def mean_se(x: np.ndarray, axis: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return mean, np.nanstd(x, axis=axis, ddof=1) / np.sqrt(n)
 
 
+def last_four(returns: np.ndarray) -> tuple[float, float]:
+    """Return over the last four evaluations (or as many as there are) of a [seeds, evaluations] table: each seed's
+    mean of them, then mean and standard error over seeds."""
+    mean, se = mean_se(np.nanmean(returns[:, -4:], axis=1))
+    return float(mean), float(se)
+
+
 def summarize(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None) -> list[dict[str, Any]]:
     """One summary row per algorithm, from its final evaluation (and its return over the last four, or as many as
     there are: each seed's mean of them, then mean and standard error over seeds)."""
@@ -54,10 +61,10 @@ def summarize(folder: pathlib.Path, config: Config, refs: dict[str, Any] | None)
         final = returns[:, -1]
         m, se = mean_se(final)
         iterations = int(max(r["iteration"] for r in rows))
-        last4_m, last4_se = mean_se(np.nanmean(returns[:, -4:], axis=1))
+        last4_m, last4_se = last_four(returns)
         row: dict[str, Any] = {"algo": algo, "seeds": int(final.size), "iterations": iterations,
                                "return_mean": float(m), "return_se": float(se),
-                               "return_last4_mean": float(last4_m), "return_last4_se": float(last4_se)}
+                               "return_last4_mean": last4_m, "return_last4_se": last4_se}
         extra_keys = sorted({k for r in rows for k in r if k.startswith("eval_") and k not in ("eval_return",)})
         for key in extra_keys:
             row[key] = float(np.nanmean(eval_table(rows, key)[1][:, -1]))

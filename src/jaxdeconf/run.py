@@ -72,16 +72,14 @@ def _setup(args: argparse.Namespace) -> tuple[cfg.Config, pathlib.Path, int]:
     return config, pathlib.Path(args.out or f"results/{config.env.rpartition(':')[2]}-{args.preset}"), jobs
 
 
-def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int = 0, host_devices: int = 1,
+def _run(config: cfg.Config, folder: pathlib.Path, quiet: bool, jobs: int, host_devices: int = 1,
          pin: bool = False) -> int:
     """Train every algorithm not yet finished (side by side, a process each), then write references, summary and
     figures."""
-    from jaxdeconf.platform import available_cores
-
     check_writable(folder, config.algos)
     queue = [algo for algo in config.algos if not finished(config, folder, algo)]  # Damaged files: before any work.
     refs = cached_references(config, folder)
-    codes = train_workers(folder, queue, jobs or len(available_cores()), quiet, host_devices, pin)
+    codes = train_workers(folder, queue, jobs, quiet, host_devices, pin)
     if 2 in codes.values():
         return 2  # A worker already printed its one-line error.
     failed = [f"{algo} (exit {code})" for algo, code in codes.items() if code != 0]
